@@ -1,0 +1,44 @@
+#!/usr/bin/env bash
+# One-command setup + run:  ./run.sh demo   |   ./run.sh test   |   ./run.sh shell
+# Creates .venv (installing python3-venv with apt if this Debian/Ubuntu lacks it),
+# installs torch==2.13.0 (CPU wheel where one is provided locally) and this package.
+set -euo pipefail
+cd "$(dirname "$0")"
+
+pick_python() {
+  for py in "${PYTHON:-}" python3.11 python3.12 python3.10 python3; do
+    [ -n "$py" ] && command -v "$py" >/dev/null 2>&1 &&
+      "$py" -c 'import sys; sys.exit(sys.version_info < (3, 10))' && { echo "$py"; return; }
+  done
+  echo "error: Python >= 3.10 not found (set PYTHON=/path/to/python3.11)" >&2; exit 1
+}
+
+apt_install() {  # system packages a fresh Debian/Ubuntu may lack
+  local sudo=""; [ "$(id -u)" = 0 ] || sudo="sudo"
+  command -v apt-get >/dev/null || { echo "error: please install: $*" >&2; exit 1; }
+  $sudo apt-get update -qq && DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq "$@"
+}
+
+setup() {
+  [ -f .venv/.installed ] && [ .venv/.installed -nt pyproject.toml ] && return
+  local py; py=$(pick_python)
+  rm -rf .venv
+  if ! "$py" -m venv .venv 2>/dev/null; then
+    rm -rf .venv
+    apt_install "python3-venv" "$(basename "$py")-venv" || apt_install python3-venv
+    "$py" -m venv .venv
+  fi
+  .venv/bin/python -m pip install -q --upgrade pip >/dev/null 2>&1 || true
+  # exactly 2.13.0: a local CPU wheel here; the package itself accepts any torch >= 2.3
+  .venv/bin/python -m pip install -q "torch==2.13.0"
+  .venv/bin/python -m pip install -q -e ".[test]"
+  touch .venv/.installed
+}
+
+setup
+case "${1:-demo}" in
+  demo) shift || true; exec .venv/bin/deepmapping demo "$@" ;;
+  test) shift || true; exec .venv/bin/python -m pytest -q -n 2 "$@" ;;
+  shell) exec bash --rcfile <(echo 'source .venv/bin/activate') ;;
+  *) exec .venv/bin/deepmapping "$@" ;;
+esac

@@ -1,0 +1,164 @@
+"""The library entry point: ``register(scans, config) -> Result``.
+
+The CLI, the benchmarks and the tests all call this function.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from deepmapping.config import Config, load_config
+from deepmapping.data import ScanSet
+from deepmapping.errors import ConfigError, InputError
+
+
+@dataclass
+class Result:
+    method: str
+    poses: np.ndarray  # (K, 3) [x, y, theta] in the units of the input points
+    runtime_s: float
+    config: Config
+    init_poses: np.ndarray | None = None
+    metrics: dict | None = None
+    history: dict = field(default_factory=dict)
+    occupancy: Callable[[np.ndarray], np.ndarray] | None = None  # M-Net: xy (M, 2) -> p(occupied)
+
+
+def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | Path | None = None,
+             resume: bool = False, on_log: Callable[[dict], None] | None = None,
+             on_epoch: Callable[[int, int, float], None] | None = None,
+             on_icp_progress: Callable[[int, int], None] | None = None) -> Result:
+    """Register the scans with ``config.method`` (deepmapping, direct, icp-point, icp-plane)."""
+    cfg = config or load_config("default")
+    scans.validate()
+    t0 = time.perf_counter()
+    if cfg.method in ("icp-point", "icp-plane"):
+        poses = incremental_icp(scans, cfg, cfg.method, on_icp_progress)
+        return _finish(scans, cfg, poses, t0, init=None)
+    saved = _load_checkpoint(checkpoint, cfg) if resume else None
+    if saved is not None:
+        init = np.asarray(saved["init_poses_input"])
+        t0 -= saved["elapsed_s"]
+    else:
+        init = warm_start_poses(scans, cfg, on_icp_progress)
+    return _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch)
+
+
+def incremental_icp(scans: ScanSet, cfg: Config, method: str, progress=None) -> np.ndarray:
+    from deepmapping.core.icp import incremental_icp as icp_chain
+
+    return icp_chain(scans.points.astype(np.float64), scans.valid, method=method.removeprefix("icp-"),
+                     max_iterations=cfg.icp.max_iterations,
+                     max_correspondence_distance=cfg.icp.max_correspondence_distance, progress=progress)
+
+
+def warm_start_poses(scans: ScanSet, cfg: Config, progress=None) -> np.ndarray:
+    """Initial poses (§3.5): identity (cold start), incremental ICP, or a given pose file."""
+    ws = cfg.warm_start
+    if ws.method == "none":
+        return np.zeros((scans.num_scans, 3))
+    if ws.method == "file":
+        if ws.path is not None:
+            from deepmapping.io.poses import read_poses
+
+            init = read_poses(ws.path)
+            if init.shape != (scans.num_scans, 3):
+                raise InputError(f"{ws.path}: {init.shape[0]} initial poses for {scans.num_scans} scans (counts differ)")
+        elif scans.init_poses is not None:
+            init = scans.init_poses
+        else:
+            raise ConfigError("warm_start.method is 'file' but no initial pose file was given")
+        return np.asarray(init, dtype=np.float64)
+    return incremental_icp(scans, cfg, ws.method, progress)
+
+
+def _load_checkpoint(checkpoint, cfg: Config) -> dict | None:
+    if checkpoint is None or not Path(checkpoint).exists():
+        return None
+    from deepmapping.solver import checkpoint as ckpt
+
+    try:
+        data = ckpt.load(checkpoint)
+    except Exception as exc:  # corrupt file: a torch/pickle error of any kind
+        raise InputError(f"{checkpoint}: cannot read checkpoint ({type(exc).__name__})") from None
+    if data["config"] != cfg.model_dump():
+        raise ConfigError(f"{checkpoint}: was written with other settings; resume with the run's config")
+    return data
+
+
+def resolve_device(name: str) -> str:
+    import torch
+
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("--device cuda asked for, but torch sees no CUDA device")
+    return name
+
+
+def _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch) -> Result:
+    import torch
+
+    from deepmapping.solver import checkpoint as ckpt
+    from deepmapping.solver.frame import Frame
+    from deepmapping.solver.model import DeepMappingModel
+    from deepmapping.solver.trainer import Trainer
+
+    device = resolve_device(cfg.device)
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    frame = Frame.from_scans(scans.points, scans.valid, init)
+    pts = torch.as_tensor(scans.points / frame.scale, dtype=torch.float32, device=device)
+    valid = torch.as_tensor(scans.valid, device=device)
+    model = DeepMappingModel(cfg, pts, torch.as_tensor(frame.to_norm(init), dtype=torch.float32, device=device))
+    model.to(device)
+    if cfg.method == "direct":
+        model.make_direct()
+
+    def evaluate(poses_norm: np.ndarray) -> float | None:
+        if scans.gt_poses is None:
+            return None
+        from deepmapping.core.metrics import ate
+
+        return ate(frame.from_norm(poses_norm), scans.gt_poses) * scans.unit_scale
+
+    trainer = Trainer(cfg, model, valid, scans.ordered, evaluate)
+    trainer.extra = {"init_poses_input": init.tolist(), "frame": frame.to_dict()}
+    if saved is not None:
+        ckpt.restore(trainer, saved)
+    trainer.run(checkpoint, on_log, on_epoch)
+    poses = frame.from_norm(model.all_poses().cpu().numpy().astype(np.float64))
+    result = _finish(scans, cfg, poses, t0, init=init)
+    result.history = trainer.state.history
+    result.occupancy = _occupancy_fn(model, frame, device)
+    return result
+
+
+def _occupancy_fn(model, frame, device):
+    import torch
+
+    def occupancy(xy: np.ndarray) -> np.ndarray:
+        q = torch.as_tensor((np.asarray(xy) - frame.center) / frame.scale, dtype=torch.float32, device=device)
+        with torch.no_grad():
+            return torch.sigmoid(model.mnet(q)).cpu().numpy()
+
+    return occupancy
+
+
+def _finish(scans: ScanSet, cfg: Config, poses: np.ndarray, t0: float, init) -> Result:
+    runtime = time.perf_counter() - t0
+    metrics = None
+    if scans.gt_poses is not None:
+        from deepmapping.core.metrics import evaluate
+
+        metrics = evaluate(poses, scans.gt_poses, scans.points, scans.valid, unit_scale=scans.unit_scale,
+                           success_threshold=cfg.eval.success_threshold)
+        metrics["runtime_s"] = runtime
+        metrics["unit"] = scans.unit
+    return Result(method=cfg.method, poses=poses, runtime_s=runtime, config=cfg, init_poses=init, metrics=metrics)

@@ -1,0 +1,38 @@
+"""`deepmapping evaluate RUN_DIR`: metrics of a finished run against ground truth."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from deepmapping.errors import InputError
+
+
+def run_evaluate(run_dir: Path, gt: Path | None = None) -> dict:
+    from deepmapping.config import load_config
+    from deepmapping.core.metrics import evaluate
+    from deepmapping.io.loaders import load_scans
+    from deepmapping.io.poses import read_poses_npy
+    from deepmapping.tools.run_dir import write_json
+
+    info_path = run_dir / "run.json"
+    if not info_path.is_file():
+        raise InputError(f"{run_dir}: not a run folder (no run.json)")
+    try:
+        info = json.loads(info_path.read_text())
+    except (OSError, json.JSONDecodeError):
+        raise InputError(f"{info_path}: corrupt run description") from None
+    if not (run_dir / "poses.npy").is_file():
+        raise InputError(f"{run_dir}: run has no poses.npy (unfinished or interrupted?)")
+    scans = load_scans(info["data"], fmt=info.get("format"), gt_path=gt or info.get("gt"))
+    if scans.gt_poses is None:
+        raise InputError(f"{info['data']}: no ground truth known; pass --gt FILE")
+    poses = read_poses_npy(run_dir / "poses.npy")
+    if poses.shape != (scans.num_scans, 3):
+        raise InputError(f"{run_dir / 'poses.npy'}: {poses.shape[0]} poses for {scans.num_scans} scans")
+    cfg = load_config("default", run_dir / "config.yaml") if (run_dir / "config.yaml").exists() else load_config()
+    metrics = evaluate(poses, scans.gt_poses, scans.points, scans.valid, unit_scale=scans.unit_scale,
+                       success_threshold=cfg.eval.success_threshold)
+    metrics |= {"unit": scans.unit, "method": info.get("method", "?"), "runtime_s": info.get("runtime_s")}
+    write_json(run_dir / "metrics.json", metrics)
+    return metrics

@@ -1,0 +1,123 @@
+"""The `deepmapping` command: simulate, register, evaluate, demo."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+from deepmapping.errors import DeepMappingError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+                  help="DeepMapping: register many 2D laser scans into one map by training an L-Net and an M-Net.")
+
+METHODS = "deepmapping | direct | icp-point | icp-plane"
+
+
+@app.command(epilog="Examples:\n\n  deepmapping simulate data/traj0 --poses 256 --seed 3\n\n"
+                    "  deepmapping simulate data/custom --map mymap.png --poses 128\n\n"
+                    "  deepmapping simulate data/paper --paper-dataset")
+def simulate(
+    out: Path = typer.Argument(..., help="Folder to write (authors' layout: 000.pcd…, gt_pose.mat, map.png)."),
+    poses: int = typer.Option(256, help="Number of poses (scans) on the trajectory."),
+    beams: int = typer.Option(256, help="Beams per 360° scan."),
+    seed: int = typer.Option(0, help="Trajectory seed."),
+    map: Optional[str] = typer.Option(None, "--map", help="PNG map (black = obstacle); default: procedural indoor map."),
+    map_seed: int = typer.Option(0, help="Seed of the procedural map."),
+    max_range: Optional[float] = typer.Option(None, help="Maximum range in px (default unlimited)."),
+    rotation: float = typer.Option(10.0, help="Max rotation per step (deg)."),
+    step: float = typer.Option(8.16, help="Mean translation per step (px)."),
+    noise: float = typer.Option(0.0, help="Range noise std (px); 0 = ideal scanner as in the paper."),
+    paper_dataset: bool = typer.Option(False, "--paper-dataset", help="Write the paper's 75 trajectories on 3 maps."),
+):
+    """Simulate a 2D lidar trajectory in a 1024×1024 occupancy image (paper §4.1)."""
+    from deepmapping.sim import dataset, maps
+
+    if paper_dataset:
+        folders = dataset.paper_dataset(out, seed=seed)
+        typer.echo(f"wrote {len(folders)} trajectories under {out}")
+        return
+    occ = maps.load_map_png(map) if map else maps.procedural_indoor_map(map_seed)
+    scans = dataset.simulate(occ, poses, seed, num_beams=beams, max_range=max_range,
+                             max_rotation_deg=rotation, mean_step_px=step, range_noise_px=noise)
+    dataset.write_authors_layout(out, scans, occ=occ)
+    typer.echo(f"wrote {poses} scans to {out} (picture: {out / 'map.png'})")
+
+
+@app.command(epilog="Examples:\n\n  deepmapping register data/traj0 --out runs/dm\n\n"
+                    "  deepmapping register data/traj0 --method icp-plane --out runs/icp\n\n"
+                    "  deepmapping register data/traj0 --profile paper --set optim.epochs=500\n\n"
+                    "  deepmapping register data/traj0 --out runs/dm --resume   # after Ctrl-C")
+def register(
+    data: Path = typer.Argument(..., help="Scan folder (authors' layout, or .pcd/.ply/.npy scans)."),
+    method: str = typer.Option("deepmapping", help=METHODS),
+    out: Optional[Path] = typer.Option(None, help="Run folder (default: runs/<timestamp>_<method>)."),
+    profile: str = typer.Option("default", help="default (fast) | paper (§4.1 exactly)."),
+    config: Optional[Path] = typer.Option(None, help="YAML/JSON config file (sections as in config.yaml)."),
+    set: Optional[List[str]] = typer.Option(None, "--set", help="Override a setting: --set optim.epochs=200."),
+    epochs: Optional[int] = typer.Option(None, help="Number of epochs."),
+    warm_start: Optional[str] = typer.Option(None, help="icp-plane | icp-point | none."),
+    init: Optional[Path] = typer.Option(None, help="Initial poses file (warm start), in the scans' units."),
+    gt: Optional[Path] = typer.Option(None, help="Ground-truth poses (overrides the folder's own)."),
+    format: Optional[str] = typer.Option(None, "--format", help="Loader name (default: picked from the path)."),
+    device: Optional[str] = typer.Option(None, help="auto | cpu | cuda."),
+    seed: Optional[int] = typer.Option(None, help="Seed (fixes everything)."),
+    resume: bool = typer.Option(False, help="Continue an interrupted run in --out from its checkpoint."),
+    no_plots: bool = typer.Option(False, "--no-plots", help="Skip the PNG pictures."),
+):
+    """Register scans with DeepMapping or a baseline and write poses, map, pictures, metrics."""
+    from deepmapping.cli import register_cmd
+    from deepmapping.cli.common import parse_sets
+    from deepmapping.cli.report import metrics_table
+    from deepmapping.cli.progress import console
+    from deepmapping.tools.run_dir import default_run_dir
+
+    if resume:
+        if out is None:
+            raise typer.BadParameter("--resume needs --out RUN_DIR")
+        cfg = register_cmd.resume_config(out)
+    else:
+        cfg = register_cmd.build_config(profile, config, method, epochs, warm_start, init, device, seed,
+                                        parse_sets(set))
+    out = out or default_run_dir(cfg.method)
+    scans, result = register_cmd.run_register(data, out, cfg, format, gt, resume, plots=not no_plots)
+    if result.metrics:
+        console.print(metrics_table({cfg.method: result.metrics}))
+    typer.echo(f"results in {out}")
+
+
+@app.command(epilog="Example:\n\n  deepmapping evaluate runs/20260101-120000_deepmapping")
+def evaluate(
+    run_dir: Path = typer.Argument(..., help="A folder written by `deepmapping register`."),
+    gt: Optional[Path] = typer.Option(None, help="Ground-truth poses (default: the data's own)."),
+):
+    """Evaluate a run against ground truth: ATE, point distance, success; writes metrics.json."""
+    from deepmapping.cli.evaluate_cmd import run_evaluate
+    from deepmapping.cli.progress import console
+    from deepmapping.cli.report import metrics_table
+
+    metrics = run_evaluate(run_dir, gt)
+    console.print(metrics_table({metrics["method"]: metrics}, title=str(run_dir)))
+
+
+@app.command(epilog="Example:\n\n  deepmapping demo --out demo")
+def demo(
+    out: Path = typer.Option(Path("demo"), help="Folder for the demo's data and runs."),
+    poses: int = typer.Option(256, help="Trajectory length."),
+    seed: int = typer.Option(0, help="Trajectory seed."),
+):
+    """Simulate a trajectory, register it with ICP and DeepMapping, evaluate, draw pictures."""
+    from deepmapping.cli.demo_cmd import run_demo
+
+    run_demo(out, poses, seed)
+
+
+def main() -> None:
+    """Console entry point: user errors become one line on stderr and exit code 2."""
+    from deepmapping.cli.common import fail
+
+    try:
+        app()
+    except DeepMappingError as exc:
+        fail(str(exc), exc.exit_code)

@@ -1,0 +1,57 @@
+"""`deepmapping register`: load scans, register, write the run folder."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from deepmapping.cli.common import fail
+from deepmapping.cli.progress import console, progress_bar
+
+
+def build_config(profile, config_file, method, epochs, warm_start, init, device, seed, sets):
+    from deepmapping.config import load_config
+
+    overrides = dict(sets)
+    overrides["method"] = method
+    if epochs is not None:
+        overrides["optim.epochs"] = epochs
+    if device is not None:
+        overrides["device"] = device
+    if seed is not None:
+        overrides["seed"] = seed
+    if init is not None:
+        overrides["warm_start.method"], overrides["warm_start.path"] = "file", str(Path(init).resolve())
+    elif warm_start is not None:
+        overrides["warm_start.method"] = warm_start
+    return load_config(profile, config_file, overrides)
+
+
+def resume_config(out: Path):
+    from deepmapping.config import load_config
+
+    if not (out / "config.yaml").exists() or not (out / "checkpoint.pt").exists():
+        fail(f"{out}: nothing to resume (no config.yaml and checkpoint.pt)")
+    return load_config("default", out / "config.yaml")
+
+
+def run_register(data: Path, out: Path, cfg, fmt, gt, resume: bool, plots: bool = True, quiet: bool = False):
+    from deepmapping.api import register
+    from deepmapping.io.loaders import load_scans
+    from deepmapping.solver.trainer import Interrupted
+    from deepmapping.tools.run_dir import write_config, write_json, write_run
+
+    scans = load_scans(data, fmt=fmt, gt_path=gt)  # every input problem is raised before out/ exists
+    info = {"data": str(data.resolve()), "format": fmt, "gt": str(Path(gt).resolve()) if gt else None}
+    out.mkdir(parents=True, exist_ok=True)
+    write_config(out, cfg)
+    write_json(out / "run.json", {"method": cfg.method, "status": "running", **info})
+    with progress_bar(not quiet) as cb:
+        try:
+            result = register(scans, cfg, checkpoint=out / "checkpoint.pt", resume=resume,
+                              on_log=cb.log, on_epoch=cb.epoch, on_icp_progress=cb.icp)
+        except Interrupted:
+            console.print(f"[yellow]interrupted:[/] checkpoint saved; continue with "
+                          f"`deepmapping register {data} --out {out} --resume`")
+            raise SystemExit(130) from None
+    write_run(out, scans, result, info, plots=plots)
+    return scans, result

@@ -1,0 +1,166 @@
+"""One typed configuration with nested sections, and named profiles.
+
+``paper`` reproduces §4.1 of the paper exactly (networks, 19 free-space samples per beam,
+batch 128, 3000 epochs). ``default`` is the fast path (see docs/method.md for what changed
+and why it is still DeepMapping).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from deepmapping.errors import ConfigError
+
+Method = Literal["deepmapping", "direct", "icp-point", "icp-plane"]
+WarmStart = Literal["none", "icp-point", "icp-plane", "file"]
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class LNetConfig(_Section):
+    """L-Net f_theta: 1D atrous CNN over the organized scan, global max-pool, MLP -> (tx, ty, theta)."""
+
+    conv_channels: list[int] = [64, 128, 1024]
+    kernel_size: int = 3
+    dilation: int = 2
+    fc_channels: list[int] = [512, 256]
+    zero_init_output: bool = False  # start as identity correction when warm-started
+
+
+class MNetConfig(_Section):
+    """M-Net m_phi: global coordinate -> occupancy logit."""
+
+    kind: Literal["mlp", "fourier"] = "mlp"
+    hidden: list[int] = [64, 512, 512, 256, 128]
+    fourier_features: int = 0  # number of log-spaced frequencies per axis (kind="fourier")
+    fourier_max_freq: float = 32.0  # highest frequency: period 2/f on the map normalized to [-1, 1]
+
+
+class LossConfig(_Section):
+    free_samples: int = 19  # free-space samples per beam (paper: 19)
+    free_sampling: Literal["uniform", "stratified"] = "uniform"
+    beams_per_scan: int | None = None  # None = every beam each step; else a random subset
+    chamfer_weight: float = 10.0  # lambda of eq. 6 (paper: 10 for 2D)
+    chamfer_window: int = 1  # N(i) = {i-w, ..., i+w} \ {i}
+
+
+class OptimConfig(_Section):
+    lr: float = 1e-3
+    batch_size: int = 128
+    epochs: int = 3000
+    max_time_s: float | None = None  # stop after this much wall time (None = no limit)
+    lr_final_factor: float = 1.0  # cosine decay to lr * factor (1.0 = constant lr, as the paper)
+    eval_every: int = 50  # evaluate ATE (when gt known) and log every N epochs
+    early_stop_tol: float | None = None  # stop when poses move less than this (units) over a log interval
+    checkpoint_every_s: float = 30.0
+
+
+class ICPConfig(_Section):
+    max_iterations: int = 50
+    max_correspondence_distance: float | None = None  # None = adaptive to the scan scale
+
+
+class WarmStartConfig(_Section):
+    method: WarmStart = "icp-plane"
+    path: str | None = None  # initial poses file (method="file")
+
+
+class EvalConfig(_Section):
+    success_threshold: float = 20.0  # ATE below this (in ground-truth units, px for 2D) = success
+
+
+class Config(_Section):
+    profile: str = "default"
+    method: Method = "deepmapping"
+    seed: int = 0
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    threads: int | None = None  # torch intra-op threads (None = torch default)
+    lnet: LNetConfig = Field(default_factory=LNetConfig)
+    mnet: MNetConfig = Field(default_factory=MNetConfig)
+    loss: LossConfig = Field(default_factory=LossConfig)
+    optim: OptimConfig = Field(default_factory=OptimConfig)
+    icp: ICPConfig = Field(default_factory=ICPConfig)
+    warm_start: WarmStartConfig = Field(default_factory=WarmStartConfig)
+    eval: EvalConfig = Field(default_factory=EvalConfig)
+
+    def to_json(self) -> str:
+        return json.dumps(self.model_dump(), indent=2)
+
+    def with_overrides(self, overrides: dict) -> "Config":
+        """Apply dotted overrides such as {"optim.epochs": 100}."""
+        data = self.model_dump()
+        for key, value in overrides.items():
+            node = data
+            *parents, leaf = key.split(".")
+            for p in parents:
+                if p not in node or not isinstance(node[p], dict):
+                    raise ConfigError(f"unknown setting '{key}'")
+                node = node[p]
+            if leaf not in node:
+                raise ConfigError(f"unknown setting '{key}'")
+            node[leaf] = value
+        return validate_config(data)
+
+
+def validate_config(data: dict) -> Config:
+    from pydantic import ValidationError
+
+    try:
+        return Config.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        loc = ".".join(str(x) for x in err["loc"])
+        raise ConfigError(f"invalid setting '{loc}': {err['msg']}") from None
+
+
+PROFILES: dict[str, dict] = {
+    # §4.1 exactly: full-size networks, 19 uniform free-space samples on every beam,
+    # batch 128, 3000 epochs, Adam lr 1e-3 constant, lambda = 10.
+    "paper": {},
+    # Fast path, measured in benchmarks/ (docs/method.md explains each change).
+    "default": {
+        "lnet": {"conv_channels": [32, 64, 256], "fc_channels": [256, 128], "zero_init_output": True},
+        "mnet": {"kind": "fourier", "hidden": [128, 128, 128], "fourier_features": 16},
+        "loss": {"free_samples": 4, "free_sampling": "stratified", "beams_per_scan": 64},
+        "optim": {"batch_size": 32, "epochs": 400, "lr_final_factor": 0.05, "eval_every": 10},
+    },
+}
+
+
+def load_config(profile: str = "default", path: str | Path | None = None, overrides: dict | None = None) -> Config:
+    """Profile defaults, then a YAML/JSON file, then dotted overrides."""
+    if profile not in PROFILES:
+        raise ConfigError(f"unknown profile '{profile}' (choose from {', '.join(PROFILES)})")
+    data = _deep_merge(Config().model_dump(), PROFILES[profile])
+    data["profile"] = profile
+    if path is not None:
+        data = _deep_merge(data, _read_config_file(Path(path)))
+    cfg = validate_config(data)
+    return cfg.with_overrides(overrides) if overrides else cfg
+
+
+def _read_config_file(path: Path) -> dict:
+    import yaml
+
+    try:
+        loaded = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: config file not found") from None
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(f"{path}: cannot read config ({type(exc).__name__})") from None
+    if not isinstance(loaded, dict):
+        raise ConfigError(f"{path}: config must be a mapping of sections")
+    return loaded
+
+
+def _deep_merge(base: dict, extra: dict) -> dict:
+    out = dict(base)
+    for k, v in extra.items():
+        out[k] = _deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out

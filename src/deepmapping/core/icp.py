@@ -1,0 +1,169 @@
+"""2D ICP (point-to-point and point-to-plane) and incremental ICP over a scan sequence.
+
+Scale-aware: with ``max_correspondence_distance=None`` the inlier threshold adapts to the
+data (``trim`` x median correspondence distance, floored at twice the median point spacing
+of the target), so the same defaults work for px/512 units and for metres.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from deepmapping.core import se2
+from deepmapping.core.alignment import rigid_align
+
+__all__ = ["icp_2d", "incremental_icp", "estimate_normals_2d"]
+
+
+def estimate_normals_2d(points: np.ndarray, k: int = 6, tree: cKDTree | None = None) -> np.ndarray:
+    """Unit normals (M, 2) from PCA of each point's k nearest neighbours (itself included)."""
+    pts = np.asarray(points, dtype=np.float64)
+    m = pts.shape[0]
+    k = int(min(max(k, 2), m))
+    tree = cKDTree(pts) if tree is None else tree
+    _, idx = tree.query(pts, k=k)
+    nb = pts[idx.reshape(m, k)]  # (M, k, 2)
+    nb = nb - nb.mean(axis=1, keepdims=True)
+    cov = np.einsum("mki,mkj->mij", nb, nb)
+    _, vecs = np.linalg.eigh(cov)  # ascending eigenvalues
+    return vecs[:, :, 0]
+
+
+def _clean(points, name: str) -> np.ndarray:
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 2:
+        raise ValueError(f"{name} must be (N, 2), got {pts.shape}")
+    return pts[np.isfinite(pts).all(axis=1)]
+
+
+def icp_2d(
+    source,
+    target,
+    init=(0.0, 0.0, 0.0),
+    method: str = "point",
+    max_iterations: int = 50,
+    max_correspondence_distance: float | None = None,
+    tolerance: float = 1e-7,
+    trim: float | None = 3.0,
+    normal_k: int = 6,
+) -> tuple[np.ndarray, dict]:
+    """Register ``source`` (N, 2) onto ``target`` (M, 2); returns (pose (3,), info).
+
+    The pose T satisfies target ≈ T(source) (i.e. it is the pose of the source frame in
+    the target frame). ``method``: "point" (point-to-point, closed-form SVD) or "plane"
+    (point-to-line with target normals from ``normal_k`` nearest neighbours, Gauss-Newton).
+    Correspondences: nearest target point, kept if within ``max_correspondence_distance``
+    (None = adaptive) and within ``trim`` x the median correspondence distance (None = off).
+    Stops when the pose update is below ``tolerance`` (translation measured relative to the
+    target's RMS radius, angle in radians). Non-finite points are ignored.
+    info: fitness (fraction of source points with an inlier correspondence), rmse (RMS
+    inlier point-to-point distance), iterations, converged.
+    """
+    if method not in ("point", "plane"):
+        raise ValueError(f"method must be 'point' or 'plane', got {method!r}")
+    src = _clean(source, "source")
+    tgt = _clean(target, "target")
+    pose = np.asarray(init, dtype=np.float64).reshape(3).copy()
+    info = {"fitness": 0.0, "rmse": float("inf"), "iterations": 0, "converged": False}
+    if src.shape[0] < 3 or tgt.shape[0] < 3:
+        return pose, info
+
+    tree = cKDTree(tgt)
+    spacing_d, _ = tree.query(tgt, k=2)
+    spacing = float(np.median(spacing_d[:, 1]))
+    scale = float(np.sqrt(np.mean(np.sum((tgt - tgt.mean(0)) ** 2, axis=1)))) or 1.0
+    floor = 2.0 * spacing
+    normals = estimate_normals_2d(tgt, normal_k, tree) if method == "plane" else None
+
+    def correspond(p):
+        moved = se2.transform_points(p, src)
+        d, j = tree.query(moved)
+        keep = np.isfinite(d)
+        if max_correspondence_distance is not None:
+            keep &= d <= max_correspondence_distance
+        if trim is not None and keep.any():
+            thr = trim * float(np.median(d[keep]))
+            if max_correspondence_distance is None:
+                thr = max(thr, floor)
+            keep &= d <= thr
+        return moved, d, j, keep
+
+    for it in range(1, max_iterations + 1):
+        moved, d, j, keep = correspond(pose)
+        if keep.sum() < 3:
+            break
+        if method == "point":
+            rot, t = rigid_align(moved[keep], tgt[j[keep]])
+            delta = np.array([t[0], t[1], np.arctan2(rot[1, 0], rot[0, 0])])
+        else:
+            p = moved[keep]
+            q = tgt[j[keep]]
+            n = normals[j[keep]]
+            jac = np.column_stack([n[:, 0], n[:, 1], p[:, 0] * n[:, 1] - p[:, 1] * n[:, 0]])
+            res = np.sum(n * (p - q), axis=1)
+            # Gauss-Newton about the origin of the target frame; tiny damping for degeneracy
+            # (e.g. a straight corridor) keeps the unobservable direction at zero.
+            jac_s = jac.copy()
+            jac_s[:, 2] /= scale  # unknown u = dtheta * scale, in length units like dx, dy
+            h = jac_s.T @ jac_s
+            h += np.eye(3) * (1e-9 * np.trace(h) + 1e-300)
+            x = np.linalg.solve(h, -jac_s.T @ res)
+            delta = np.array([x[0], x[1], x[2] / scale])
+        pose = se2.compose(delta, pose)
+        info["iterations"] = it
+        step = np.hypot(delta[0], delta[1]) / scale + abs(delta[2])
+        if step < tolerance:
+            info["converged"] = True
+            break
+
+    moved, d, j, keep = correspond(pose)
+    info["fitness"] = float(keep.mean())
+    info["rmse"] = float(np.sqrt(np.mean(d[keep] ** 2))) if keep.any() else float("inf")
+    return pose, info
+
+
+def incremental_icp(
+    points,
+    valid,
+    method: str = "point",
+    init: str = "velocity",
+    progress: Callable[[int, int], None] | None = None,
+    **icp_kwargs,
+) -> np.ndarray:
+    """Incremental (frame-to-frame) ICP over an ordered scan sequence.
+
+    points (K, N, 2), valid (K, N). Scan i is registered to scan i-1 and the relative
+    motions are chained with :func:`se2.chain`; pose 0 is the identity. ``init``:
+    "velocity" (previous relative motion, constant-velocity guess), "identity", or "best"
+    (run both, keep the higher fitness, then lower rmse). ``progress(i, K)`` is called after
+    each registered scan. Extra keyword arguments go to :func:`icp_2d`. Returns (K, 3).
+    """
+    if init not in ("velocity", "identity", "best"):
+        raise ValueError(f"init must be 'velocity', 'identity' or 'best', got {init!r}")
+    pts = np.asarray(points, dtype=np.float64)
+    valid = np.asarray(valid, dtype=bool)
+    if pts.ndim != 3 or pts.shape[2] != 2:
+        raise ValueError(f"points must be (K, N, 2), got {pts.shape}")
+    if valid.shape != pts.shape[:2]:
+        raise ValueError(f"valid mask shape {valid.shape} != {pts.shape[:2]}")
+    k = pts.shape[0]
+    rels = np.zeros((max(k - 1, 0), 3))
+    prev = np.zeros(3)
+    for i in range(1, k):
+        src = pts[i][valid[i]]
+        tgt = pts[i - 1][valid[i - 1]]
+        if init == "identity":
+            rel, _ = icp_2d(src, tgt, init=np.zeros(3), method=method, **icp_kwargs)
+        elif init == "velocity":
+            rel, _ = icp_2d(src, tgt, init=prev, method=method, **icp_kwargs)
+        else:
+            cands = [icp_2d(src, tgt, init=g, method=method, **icp_kwargs) for g in (prev, np.zeros(3))]
+            rel, _ = max(cands, key=lambda c: (round(c[1]["fitness"], 6), -c[1]["rmse"]))
+        rels[i - 1] = rel
+        prev = rel
+        if progress is not None:
+            progress(i, k)
+    return se2.chain(rels)

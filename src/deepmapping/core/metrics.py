@@ -1,0 +1,72 @@
+"""Evaluation metrics of the paper (§4): ATE and point distance after rigid alignment."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from deepmapping.core import se2
+from deepmapping.core.alignment import align_poses_2d
+
+__all__ = ["ate", "point_distance", "rotation_rmse_deg", "evaluate"]
+
+
+def _check(est, gt) -> tuple[np.ndarray, np.ndarray]:
+    est = np.asarray(est, dtype=np.float64)
+    gt = np.asarray(gt, dtype=np.float64)
+    if est.ndim != 2 or est.shape[1] != 3 or est.shape != gt.shape:
+        raise ValueError(f"est and gt must both be (K, 3), got {est.shape} and {gt.shape}")
+    return est, gt
+
+
+def ate(est, gt) -> float:
+    """Absolute trajectory error: RMSE of positions after aligning est onto gt."""
+    est, gt = _check(est, gt)
+    aligned = align_poses_2d(est, gt)
+    return float(np.sqrt(np.mean(np.sum((aligned[:, :2] - gt[:, :2]) ** 2, axis=1))))
+
+
+def rotation_rmse_deg(est, gt) -> float:
+    """RMSE of heading errors (degrees) after the same alignment as ATE."""
+    est, gt = _check(est, gt)
+    aligned = align_poses_2d(est, gt)
+    err = se2.wrap_angle(aligned[:, 2] - gt[:, 2])
+    return float(np.degrees(np.sqrt(np.mean(err**2))))
+
+
+def point_distance(points, valid, est, gt) -> float:
+    """Mean distance between each valid point registered with gt poses and with est poses.
+
+    points (K, N, 2) in sensor frames, valid (K, N) bool. The estimate is first aligned onto
+    gt exactly as for ATE (positions), then used to register the points.
+    """
+    est, gt = _check(est, gt)
+    pts = np.asarray(points, dtype=np.float64)
+    valid = np.asarray(valid, dtype=bool)
+    if pts.ndim != 3 or pts.shape[2] != 2 or pts.shape[0] != est.shape[0]:
+        raise ValueError(f"points must be (K, N, 2) with K = {est.shape[0]}, got {pts.shape}")
+    if valid.shape != pts.shape[:2]:
+        raise ValueError(f"valid mask shape {valid.shape} != {pts.shape[:2]}")
+    if not valid.any():
+        raise ValueError("no valid point")
+    aligned = align_poses_2d(est, gt)
+    g_gt = se2.transform_points(gt, pts)
+    g_est = se2.transform_points(aligned, pts)
+    d = np.linalg.norm(g_est - g_gt, axis=-1)
+    return float(d[valid].mean())
+
+
+def evaluate(est, gt, points, valid, unit_scale: float = 1.0, success_threshold: float = 20.0) -> dict:
+    """All metrics; lengths multiplied by ``unit_scale`` (ground-truth units such as px).
+
+    Returns {"ate", "point_distance", "success" (ate < success_threshold, both in scaled
+    units), "rotation_rmse_deg", "num_scans"}.
+    """
+    est, gt = _check(est, gt)
+    a = ate(est, gt) * unit_scale
+    return {
+        "ate": a,
+        "point_distance": point_distance(points, valid, est, gt) * unit_scale,
+        "success": bool(a < success_threshold),
+        "rotation_rmse_deg": rotation_rmse_deg(est, gt),
+        "num_scans": int(est.shape[0]),
+    }

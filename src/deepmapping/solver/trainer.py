@@ -1,0 +1,143 @@
+"""The optimisation loop: "training" the networks is the registration (eq. 2)."""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import torch
+
+from deepmapping.config import Config
+from deepmapping.solver import checkpoint as ckpt
+from deepmapping.solver.geometry import transform
+from deepmapping.solver.loss import chamfer_loss, occupancy_bce
+from deepmapping.solver.model import DeepMappingModel
+from deepmapping.solver.sampling import free_space_fractions, free_space_points, select_beams
+
+
+class Interrupted(Exception):
+    """Ctrl-C during training: a checkpoint was written to `path`."""
+
+    def __init__(self, path):
+        super().__init__(f"interrupted; checkpoint saved to {path}")
+        self.path = path
+
+
+@dataclass
+class TrainState:
+    epoch: int = 0
+    step: int = 0
+    elapsed_s: float = 0.0
+    history: dict = field(default_factory=lambda: {k: [] for k in ckpt.HISTORY_KEYS})
+
+
+def epoch_batches(num_scans: int, batch: int, rng: np.random.Generator) -> list[np.ndarray]:
+    """Contiguous blocks of scans (temporal neighbours stay together for the Chamfer term),
+    cut at a random offset each epoch so every neighbour pair is seen, in random order."""
+    batch = min(batch, num_scans)
+    offset = int(rng.integers(0, batch))
+    cuts = [0] + list(range(offset or batch, num_scans, batch)) + [num_scans]
+    blocks = [np.arange(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
+    return [blocks[i] for i in rng.permutation(len(blocks))]
+
+
+class Trainer:
+    def __init__(self, cfg: Config, model: DeepMappingModel, valid: torch.Tensor, ordered: bool,
+                 evaluate: Callable[[np.ndarray], float | None] | None = None):
+        self.cfg, self.model, self.valid = cfg, model, valid
+        self.use_chamfer = ordered and cfg.loss.chamfer_weight > 0
+        self.evaluate = evaluate
+        self.device = valid.device
+        self.gen = torch.Generator(device=self.device).manual_seed(cfg.seed)
+        self.opt = torch.optim.Adam(model.trainable(), lr=cfg.optim.lr)
+        k = valid.shape[0]
+        self.steps_per_epoch = len(epoch_batches(k, cfg.optim.batch_size, np.random.default_rng(0)))
+        self.total_steps = cfg.optim.epochs * self.steps_per_epoch
+        self.state = TrainState()
+
+    # -- one step -----------------------------------------------------------------------
+    def lr_at(self, step: int) -> float:
+        lo = self.cfg.optim.lr_final_factor
+        frac = min(step / max(self.total_steps, 1), 1.0)
+        return self.cfg.optim.lr * (lo + (1 - lo) * 0.5 * (1 + math.cos(math.pi * frac)))
+
+    def loss(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        cfg = self.cfg.loss
+        scans, valid = self.model.scans[idx], self.valid[idx]
+        poses = self.model.poses(idx)
+        pts, pv = select_beams(scans, valid, cfg.beams_per_scan, self.gen)
+        occ_global = transform(poses, pts)
+        t = free_space_fractions(pv.shape, cfg.free_samples, cfg.free_sampling, self.gen, self.device)
+        free_global = transform(poses, free_space_points(pts, t))
+        occ_logits = self.model.mnet(occ_global)  # (B, M)
+        free_logits = self.model.mnet(free_global)  # (B, M, S)
+        bce = occupancy_bce(occ_logits, pv, free_logits, pv[..., None].expand_as(free_logits))
+        if not self.use_chamfer:
+            return bce, bce, bce.new_zeros(())
+        ch = chamfer_loss(transform(poses, scans), valid, idx, cfg.chamfer_window)
+        return bce + self.cfg.loss.chamfer_weight * ch, bce, ch
+
+    def step(self, idx: np.ndarray) -> tuple[float, float, float]:
+        for g in self.opt.param_groups:
+            g["lr"] = self.lr_at(self.state.step)
+        total, bce, ch = self.loss(torch.as_tensor(idx, device=self.device))
+        self.opt.zero_grad(set_to_none=True)
+        total.backward()
+        self.opt.step()
+        self.state.step += 1
+        return total.item(), bce.item(), ch.item()
+
+    # -- the loop -----------------------------------------------------------------------
+    def run(self, checkpoint_path=None, on_log: Callable[[dict], None] | None = None,
+            on_epoch: Callable[[int, int, float], None] | None = None) -> TrainState:
+        cfg, st = self.cfg.optim, self.state
+        k = self.valid.shape[0]
+        t_start = time.perf_counter() - st.elapsed_s
+        last_ckpt = time.perf_counter()
+        prev_poses = self.model.all_poses().cpu().numpy() if cfg.early_stop_tol else None
+        if st.epoch == 0 and not st.history["iteration"]:
+            self._log(0, float("nan"), float("nan"), float("nan"), 0.0, on_log)
+        try:
+            while st.epoch < cfg.epochs:
+                rng = np.random.default_rng([self.cfg.seed, st.epoch])
+                sums = np.zeros(3)
+                batches = epoch_batches(k, cfg.batch_size, rng)
+                for idx in batches:
+                    sums += self.step(idx)
+                st.epoch += 1
+                if on_epoch:
+                    on_epoch(st.epoch, cfg.epochs, sums[0] / len(batches))
+                st.elapsed_s = time.perf_counter() - t_start
+                out_of_time = cfg.max_time_s is not None and st.elapsed_s >= cfg.max_time_s
+                last = st.epoch >= cfg.epochs or out_of_time
+                if st.epoch % cfg.eval_every == 0 or last:
+                    mean = sums / len(batches)
+                    poses = self._log(st.step, *mean, st.elapsed_s, on_log)
+                    if prev_poses is not None:
+                        moved = np.abs(poses[:, :2] - prev_poses[:, :2]).max()
+                        prev_poses = poses
+                        last = last or moved < cfg.early_stop_tol
+                if checkpoint_path and (last or time.perf_counter() - last_ckpt > cfg.checkpoint_every_s):
+                    ckpt.save(checkpoint_path, self)
+                    last_ckpt = time.perf_counter()
+                if last:
+                    break
+        except KeyboardInterrupt:
+            st.elapsed_s = time.perf_counter() - t_start
+            if checkpoint_path:
+                ckpt.save(checkpoint_path, self)
+            raise Interrupted(checkpoint_path) from None
+        return st
+
+    def _log(self, step, loss, bce, ch, elapsed, on_log) -> np.ndarray:
+        poses = self.model.all_poses().cpu().numpy().astype(np.float64)
+        ate = self.evaluate(poses) if self.evaluate else None
+        h = self.state.history
+        for key, val in zip(ckpt.HISTORY_KEYS, (step, self.state.epoch, elapsed, loss, bce, ch, ate)):
+            h[key].append(None if val is None else float(val))
+        if on_log:
+            on_log({k: h[k][-1] for k in ckpt.HISTORY_KEYS} | {"total_epochs": self.cfg.optim.epochs})
+        return poses

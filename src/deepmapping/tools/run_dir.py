@@ -1,0 +1,106 @@
+"""Everything a run writes into its folder, each file written atomically.
+
+poses.npy / poses.txt, map.ply, map.png, occupancy.png, curves.png, history.csv,
+config.yaml, run.json and (when ground truth is known) metrics.json. The checkpoint
+(checkpoint.pt) is written by the trainer while it runs.
+"""
+
+from __future__ import annotations
+
+import json
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+
+from deepmapping.api import Result
+from deepmapping.core import se2
+from deepmapping.data import ScanSet
+from deepmapping.io.pcd import atomic_write
+
+
+def default_run_dir(method: str, root: str | Path = "runs") -> Path:
+    """runs/YYYYmmdd-HHMMSS_<method> (a fresh timestamped folder per run)."""
+    return Path(root) / f"{datetime.now():%Y%m%d-%H%M%S}_{method}"
+
+
+def write_text(path: Path, text: str) -> None:
+    atomic_write(path, lambda f: f.write(text.encode()))
+
+
+def write_json(path: Path, data) -> None:
+    write_text(path, json.dumps(data, indent=2, default=_jsonable) + "\n")
+
+
+def _jsonable(x):
+    if isinstance(x, (np.floating, np.integer, np.bool_)):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    raise TypeError(type(x))
+
+
+def write_config(out: Path, result_config) -> None:
+    import yaml
+
+    write_text(out / "config.yaml", yaml.safe_dump(result_config.model_dump(), sort_keys=False))
+
+
+def write_run(out: Path, scans: ScanSet, result: Result, data_info: dict, plots: bool = True) -> list[Path]:
+    """Write every output of a finished run; returns the files written."""
+    from deepmapping.io.ply import write_ply
+    from deepmapping.io.poses import write_pose_text, write_poses_npy
+
+    out.mkdir(parents=True, exist_ok=True)
+    write_poses_npy(out / "poses.npy", result.poses)
+    write_pose_text(out / "poses.txt", result.poses)
+    write_config(out, result.config)
+    write_json(out / "run.json", {"method": result.method, "runtime_s": result.runtime_s,
+                                  "num_scans": scans.num_scans, "unit": scans.unit,
+                                  "unit_scale": scans.unit_scale, **data_info})
+    write_ply(out / "map.ply", *_global_cloud(scans, result.poses))
+    if result.metrics is not None:
+        write_json(out / "metrics.json", result.metrics)
+    if result.history.get("iteration"):
+        _write_history_csv(out / "history.csv", result.history)
+    if plots:
+        _write_pictures(out, scans, result)
+    return sorted(p for p in out.iterdir() if p.is_file() and not p.name.startswith("."))
+
+
+def _global_cloud(scans: ScanSet, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    import matplotlib
+
+    glob = se2.transform_points(poses, scans.points[..., :2].astype(np.float64))
+    scan_id = np.broadcast_to(np.arange(scans.num_scans)[:, None], scans.valid.shape)
+    xy, ids = glob[scans.valid], scan_id[scans.valid]
+    colors = (matplotlib.colormaps["turbo"](ids / max(scans.num_scans - 1, 1))[:, :3] * 255).astype(np.uint8)
+    return np.column_stack([xy, np.zeros(len(xy))]), colors
+
+
+def _write_history_csv(path: Path, history: dict) -> None:
+    keys = [k for k in history if isinstance(history[k], list)]
+    rows = [",".join(keys)]
+    for vals in zip(*(history[k] for k in keys)):
+        rows.append(",".join("" if v is None else repr(v) for v in vals))
+    write_text(path, "\n".join(rows) + "\n")
+
+
+def _write_pictures(out: Path, scans: ScanSet, result: Result) -> None:
+    from deepmapping.core.alignment import align_poses_2d
+    from deepmapping.tools import plots
+
+    unit, scale = scans.unit, scans.unit_scale
+    flip = unit == "px"  # image frame: y grows downwards, as in the simulator's pictures
+    # show the estimate in the ground-truth frame when known (the estimate's frame is arbitrary)
+    poses = result.poses if scans.gt_poses is None else align_poses_2d(result.poses, scans.gt_poses)
+    title = f"{result.method}"
+    if result.metrics:
+        title += f" — ATE {result.metrics['ate']:.2f} {unit}"
+    plots.plot_map(out / "map.png", scans.points, scans.valid, poses, scans.gt_poses, title=title,
+                   unit=unit, unit_scale=scale, invert_y=flip)
+    if result.occupancy is not None:
+        plots.plot_occupancy(out / "occupancy.png", result.occupancy, scans.points, scans.valid, result.poses,
+                             unit=unit, unit_scale=scale, title=f"M-Net occupancy ({result.method})", invert_y=flip)
+    if result.history.get("iteration"):
+        plots.plot_curves(out / "curves.png", dict(result.history, unit=unit))

@@ -1,0 +1,29 @@
+import numpy as np
+import pytest
+import torch
+
+torch.set_num_threads(1)  # tests run in parallel (pytest -n 2): one thread each
+
+
+@pytest.fixture(scope="session")
+def indoor_map():
+    from deepmapping.sim.maps import procedural_indoor_map
+
+    return procedural_indoor_map(0)
+
+
+@pytest.fixture(scope="session")
+def small_scans(indoor_map):
+    """32 simulated scans x 256 beams (px/512 units) with ground truth."""
+    from deepmapping.sim.dataset import simulate
+
+    return simulate(indoor_map, 32, seed=1)
+
+
+@pytest.fixture(scope="session")
+def sim_folder(tmp_path_factory, indoor_map, small_scans):
+    from deepmapping.sim.dataset import write_authors_layout
+
+    out = tmp_path_factory.mktemp("sim") / "traj"
+    write_authors_layout(out, small_scans, occ=indoor_map)
+    return out
