@@ -55,6 +55,7 @@ class OptimConfig(_Section):
     batch_size: int = 128
     epochs: int = 3000
     max_time_s: float | None = None  # stop after this much wall time (None = no limit)
+    mnet_warmup_epochs: int = 0  # first epochs train the M-Net only (poses held at the warm start)
     lr_final_factor: float = 1.0  # cosine decay to lr * factor (1.0 = constant lr, as the paper)
     eval_every: int = 50  # evaluate ATE (when gt known) and log every N epochs
     early_stop_tol: float | None = None  # stop when poses move less than this (units) over a log interval

@@ -39,7 +39,7 @@ def restore(trainer, data: dict) -> None:
     model = trainer.model
     if data["direct"] and model.direct_poses is None:
         model.make_direct()
-        trainer.opt = torch.optim.Adam(model.trainable(), lr=trainer.cfg.optim.lr)
+        trainer.opt = torch.optim.Adam(model.param_groups(), lr=trainer.cfg.optim.lr)
     model.load_state_dict(data["model"])
     trainer.opt.load_state_dict(data["optimizer"])
     trainer.gen.set_state(data["generator"])

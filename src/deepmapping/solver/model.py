@@ -37,6 +37,7 @@ class DeepMappingModel(nn.Module):
         themselves, starting from one forward pass of the L-Net (as the paper does)."""
         self.direct_poses = nn.Parameter(self.all_poses().clone())
 
-    def trainable(self) -> list[nn.Parameter]:
+    def param_groups(self) -> list[dict]:
+        """Two optimizer groups: what produces the poses (L-Net or direct poses), and the M-Net."""
         pose_params = [self.direct_poses] if self.direct_poses is not None else list(self.lnet.parameters())
-        return pose_params + list(self.mnet.parameters())
+        return [{"params": pose_params, "name": "poses"}, {"params": list(self.mnet.parameters()), "name": "mnet"}]

@@ -52,7 +52,7 @@ class Trainer:
         self.evaluate = evaluate
         self.device = valid.device
         self.gen = torch.Generator(device=self.device).manual_seed(cfg.seed)
-        self.opt = torch.optim.Adam(model.trainable(), lr=cfg.optim.lr)
+        self.opt = torch.optim.Adam(model.param_groups(), lr=cfg.optim.lr)
         k = valid.shape[0]
         self.steps_per_epoch = len(epoch_batches(k, cfg.optim.batch_size, np.random.default_rng(0)))
         self.total_steps = cfg.optim.epochs * self.steps_per_epoch
@@ -67,7 +67,11 @@ class Trainer:
     def loss(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         cfg = self.cfg.loss
         scans, valid = self.model.scans[idx], self.valid[idx]
-        poses = self.model.poses(idx)
+        if self.state.epoch < self.cfg.optim.mnet_warmup_epochs:
+            with torch.no_grad():  # M-Net warm-up: poses held, no L-Net backward
+                poses = self.model.poses(idx)
+        else:
+            poses = self.model.poses(idx)
         pts, pv = select_beams(scans, valid, cfg.beams_per_scan, self.gen)
         occ_global = transform(poses, pts)
         t = free_space_fractions(pv.shape, cfg.free_samples, cfg.free_sampling, self.gen, self.device)
@@ -81,8 +85,10 @@ class Trainer:
         return bce + self.cfg.loss.chamfer_weight * ch, bce, ch
 
     def step(self, idx: np.ndarray) -> tuple[float, float, float]:
+        lr = self.lr_at(self.state.step)
+        warmup = self.state.epoch < self.cfg.optim.mnet_warmup_epochs
         for g in self.opt.param_groups:
-            g["lr"] = self.lr_at(self.state.step)
+            g["lr"] = 0.0 if (warmup and g["name"] == "poses") else lr
         total, bce, ch = self.loss(torch.as_tensor(idx, device=self.device))
         self.opt.zero_grad(set_to_none=True)
         total.backward()

@@ -1,0 +1,184 @@
+"""Solver: geometry, free-space sampling, losses, batching, training, checkpoints."""
+
+import numpy as np
+import pytest
+import torch
+
+from deepmapping.config import load_config
+from deepmapping.core import se2
+from deepmapping.solver import geometry, loss, sampling
+from deepmapping.solver.trainer import epoch_batches
+
+
+def test_torch_geometry_matches_numpy():
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(size=(20, 3)), rng.normal(size=(20, 3))
+    pts = rng.normal(size=(20, 7, 2))
+    got = geometry.compose(torch.tensor(a), torch.tensor(b)).numpy()
+    want = se2.compose(a, b)
+    np.testing.assert_allclose(se2.wrap_angle(got[:, 2]), want[:, 2], atol=1e-12)
+    np.testing.assert_allclose(got[:, :2], want[:, :2], atol=1e-12)
+    np.testing.assert_allclose(geometry.transform(torch.tensor(a), torch.tensor(pts)).numpy(),
+                               se2.transform_points(a, pts), atol=1e-12)
+
+
+@pytest.mark.parametrize("mode", ["uniform", "stratified"])
+def test_free_space_samples_lie_on_beams_between_sensor_and_hit(mode):
+    gen = torch.Generator().manual_seed(0)
+    pts = torch.randn(4, 50, 2, dtype=torch.float64)
+    pose = torch.tensor([[1.0, -2.0, 0.3]] * 4, dtype=torch.float64)
+    t = sampling.free_space_fractions((4, 50), 19, mode, gen, "cpu")
+    assert t.shape == (4, 50, 19) and (t >= 0).all() and (t < 1).all()
+    if mode == "stratified":  # one sample in each 1/19 bin
+        assert ((t * 19).floor() == torch.arange(19)).all()
+    free = geometry.transform(pose, sampling.free_space_points(pts, t))  # (4, 50, 19, 2)
+    hit = geometry.transform(pose, pts)[:, :, None, :]
+    sensor = pose[:, None, None, :2]
+    u, v = hit - sensor, free - sensor
+    cross = u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+    assert cross.abs().max() < 1e-9  # collinear with the beam
+    along = (u * v).sum(-1) / (u * u).sum(-1)
+    assert (along >= 0).all() and (along < 1).all()  # between the sensor and the hit
+    # drawn afresh: a second draw differs
+    assert not torch.equal(t, sampling.free_space_fractions((4, 50), 19, mode, gen, "cpu"))
+
+
+def test_select_beams_prefers_valid_beams():
+    gen = torch.Generator().manual_seed(0)
+    pts = torch.arange(2 * 10 * 2, dtype=torch.float32).reshape(2, 10, 2)
+    valid = torch.zeros(2, 10, dtype=torch.bool)
+    valid[:, :4] = True
+    p, v = sampling.select_beams(pts, valid, 4, gen)
+    assert p.shape == (2, 4, 2) and v.all()
+    assert sampling.select_beams(pts, valid, None, gen)[0] is pts
+
+
+def test_chamfer_distance_values_and_masks():
+    x = torch.tensor([[[0.0, 0.0], [1.0, 0.0], [9.0, 9.0]]])
+    y = torch.tensor([[[0.0, 1.0], [1.0, 0.0], [5.0, 5.0]]])
+    xv = torch.tensor([[True, True, False]])
+    yv = torch.tensor([[True, True, False]])
+    # x->y: 0->(1.0 or 1.0) = 1, 1->0 = 0: mean 0.5; y->x: same: 0.5
+    assert loss.chamfer(x, xv, y, yv).item() == pytest.approx(1.0)
+    assert loss.chamfer(x, xv, x, xv).item() == pytest.approx(0.0, abs=1e-5)
+    # gradient flows to the points
+    xg = x.clone().requires_grad_(True)
+    loss.chamfer(xg, xv, y, yv).sum().backward()
+    assert xg.grad.abs().sum() > 0 and xg.grad[0, 2].abs().sum() == 0
+
+
+def test_batches_partition_scans_and_cover_every_neighbour_pair():
+    k, pairs = 100, set()
+    for epoch in range(30):
+        blocks = epoch_batches(k, 16, np.random.default_rng([0, epoch]))
+        assert sorted(np.concatenate(blocks).tolist()) == list(range(k))
+        for b in blocks:
+            assert (np.diff(b) == 1).all()  # contiguous: temporal neighbours stay together
+            a, c = loss.temporal_pairs(torch.as_tensor(b), 1)
+            pairs |= {(int(b[i]), int(b[j])) for i, j in zip(a, c)}
+    assert pairs == {(i, i + 1) for i in range(k - 1)}
+
+
+def _fit_mnet_bce(scans, poses, steps=150):
+    """Mean BCE after fitting only the M-Net to scans registered with fixed `poses`."""
+    from deepmapping.solver.frame import Frame
+    from deepmapping.solver.model import DeepMappingModel
+    from deepmapping.solver.trainer import Trainer
+
+    torch.manual_seed(0)
+    cfg = load_config("default", overrides={"loss.chamfer_weight": 0.0})
+    frame = Frame.from_scans(scans.points, scans.valid, scans.gt_poses)
+    pts = torch.as_tensor(scans.points / frame.scale, dtype=torch.float32)
+    model = DeepMappingModel(cfg, pts, torch.as_tensor(frame.to_norm(poses), dtype=torch.float32))
+    trainer = Trainer(cfg, model, torch.as_tensor(scans.valid), ordered=False)
+    trainer.opt = torch.optim.Adam(model.mnet.parameters(), lr=1e-3)
+    idx = torch.arange(scans.num_scans)
+    values = []
+    for i in range(steps):
+        total, _, _ = trainer.loss(idx)
+        trainer.opt.zero_grad()
+        total.backward()
+        trainer.opt.step()
+        values.append(total.item())
+    return float(np.mean(values[-30:]))
+
+
+def test_occupancy_loss_is_lower_at_true_poses(small_scans):
+    rng = np.random.default_rng(0)
+    perturbed = small_scans.gt_poses + np.column_stack(
+        [rng.normal(0, 8 / 512, (32, 2)), rng.normal(0, np.radians(3), 32)])
+    true_bce = _fit_mnet_bce(small_scans, small_scans.gt_poses)
+    bad_bce = _fit_mnet_bce(small_scans, perturbed)
+    assert true_bce < 0.8 * bad_bce, (true_bce, bad_bce)
+
+
+def _quick_cfg(**over):
+    base = {"optim.epochs": 4, "optim.eval_every": 1, "warm_start.method": "icp-plane"}
+    return load_config("default", overrides=base | over)
+
+
+def test_register_is_reproducible_from_the_seed(small_scans):
+    from deepmapping.api import register
+
+    a = register(small_scans, _quick_cfg()).poses
+    b = register(small_scans, _quick_cfg()).poses
+    c = register(small_scans, _quick_cfg(seed=1)).poses
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(a, c)
+
+
+def test_direct_optimization_starts_from_one_lnet_forward_pass(small_scans):
+    from deepmapping.api import register
+
+    paper_like = {"lnet.zero_init_output": False}  # a random L-Net moves the poses at step 0
+    direct = register(small_scans, _quick_cfg(method="direct", **{"optim.epochs": 0}, **paper_like))
+    dm = register(small_scans, _quick_cfg(**{"optim.epochs": 0}, **paper_like))
+    np.testing.assert_allclose(direct.poses, dm.poses, atol=1e-6)
+    assert not np.allclose(dm.poses, dm.init_poses, atol=1e-4)
+    moved = register(small_scans, _quick_cfg(method="direct", **{"optim.epochs": 3}, **paper_like))
+    assert not np.allclose(moved.poses, direct.poses)
+
+
+def test_ctrl_c_then_resume_continues_exactly_where_the_run_stopped(small_scans, tmp_path):
+    from deepmapping.api import register
+    from deepmapping.solver.trainer import Interrupted
+
+    full = register(small_scans, _quick_cfg(), checkpoint=tmp_path / "a.pt")
+
+    def ctrl_c_after_two_epochs(epoch, total, loss_value):
+        if epoch == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(Interrupted):
+        register(small_scans, _quick_cfg(), checkpoint=tmp_path / "b.pt", on_epoch=ctrl_c_after_two_epochs)
+    assert torch.load(tmp_path / "b.pt", weights_only=False)["epoch"] == 2
+    resumed = register(small_scans, _quick_cfg(), checkpoint=tmp_path / "b.pt", resume=True)
+    np.testing.assert_allclose(resumed.poses, full.poses, atol=1e-6)
+    assert resumed.history["epoch"][-1] == 4
+    with pytest.raises(Exception, match="other settings"):
+        register(small_scans, _quick_cfg(seed=5), checkpoint=tmp_path / "b.pt", resume=True)
+
+
+def test_deepmapping_improves_on_its_icp_warm_start():
+    """Convergence: on a small trajectory where incremental ICP drifts, DeepMapping
+    warm-started from that ICP ends with a clearly lower ATE."""
+    from deepmapping.api import register
+    from deepmapping.sim.dataset import simulate
+    from deepmapping.sim.maps import procedural_indoor_map
+
+    scans = simulate(procedural_indoor_map(0), 32, seed=2, num_beams=64, mean_step_px=16, range_noise_px=1.0)
+    icp = register(scans, load_config("default", overrides={"method": "icp-point"}))
+    dm = register(scans, load_config("default", overrides={"warm_start.method": "icp-point", "optim.epochs": 100}))
+    assert icp.metrics["ate"] > 2.0  # the warm start really is off
+    assert dm.metrics["ate"] < 0.8 * icp.metrics["ate"], (dm.metrics["ate"], icp.metrics["ate"])
+    np.testing.assert_allclose(dm.init_poses, icp.poses)  # warm start = that ICP
+
+
+def test_paper_profile_is_the_paper_setup():
+    cfg = load_config("paper")
+    assert cfg.lnet.conv_channels == [64, 128, 1024] and cfg.lnet.fc_channels == [512, 256]
+    assert cfg.lnet.kernel_size == 3 and cfg.lnet.dilation == 2
+    assert cfg.mnet.kind == "mlp" and cfg.mnet.hidden == [64, 512, 512, 256, 128]
+    assert cfg.loss.free_samples == 19 and cfg.loss.beams_per_scan is None
+    assert cfg.optim.batch_size == 128 and cfg.optim.epochs == 3000 and cfg.optim.lr == 1e-3
+    assert cfg.loss.chamfer_weight == 10.0
