@@ -67,19 +67,44 @@ def assert_one_line_error(res: subprocess.CompletedProcess, names: str, out_dir:
 
 
 # ------------------------------------------------------------------------------------------
-# shared data and runs
+# shared data and runs (built once per session, also under pytest-xdist)
 # ------------------------------------------------------------------------------------------
-@pytest.fixture(scope="module")
-def work(tmp_path_factory) -> Path:
-    return tmp_path_factory.mktemp("cli")
+def _shared(tmp_path_factory, name: str, build):
+    """build(folder) -> JSON-able value, computed once: under xdist the workers share it
+    through the session's common temp folder (file lock + JSON), otherwise plain."""
+    if "PYTEST_XDIST_WORKER" not in os.environ:
+        return build(tmp_path_factory.mktemp(name))
+    import fcntl
+
+    root = tmp_path_factory.getbasetemp().parent  # shared by the workers of this session
+    with open(root / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        done = root / f"{name}.json"
+        if not done.exists():
+            folder = root / name
+            folder.mkdir()
+            done.write_text(json.dumps(build(folder)))
+        return json.loads(done.read_text())
+
+
+def _to_json(res: subprocess.CompletedProcess) -> dict:
+    return {"args": [str(a) for a in res.args], "returncode": res.returncode, "stdout": res.stdout,
+            "stderr": res.stderr}
+
+
+def _from_json(d: dict) -> subprocess.CompletedProcess:
+    return subprocess.CompletedProcess(d["args"], d["returncode"], d["stdout"], d["stderr"])
 
 
 @pytest.fixture(scope="module")
-def data16(work) -> Path:
-    data = work / "data16"
-    res = ok(dm("simulate", data, "--poses", NUM_POSES, "--seed", 1))
-    assert str(data) in res.stdout
-    return data
+def data16(tmp_path_factory) -> Path:
+    def build(folder: Path) -> str:
+        data = folder / "data16"
+        res = ok(dm("simulate", data, "--poses", NUM_POSES, "--seed", 1))
+        assert str(data) in res.stdout
+        return str(data)
+
+    return Path(_shared(tmp_path_factory, "data16", build))
 
 
 RUN_SEED = 5
@@ -87,19 +112,23 @@ DM_SETS = ["--set", "loss.free_samples=2", "--set", "optim.lr=0.002"]
 
 
 @pytest.fixture(scope="module")
-def runs(work, data16) -> dict[str, tuple[Path, subprocess.CompletedProcess]]:
-    """icp-plane, deepmapping (twice, same seed), direct: run concurrently once for the module."""
-    reg = ["register", data16]
-    dm_args = [*TINY, *DM_SETS, "--seed", RUN_SEED, "--device", "cpu"]
-    jobs = {
-        "icp-plane": [*reg, "--method", "icp-plane", "--out", work / "R1"],
-        "deepmapping": [*reg, "--method", "deepmapping", *dm_args, "--out", work / "R2"],
-        "deepmapping-again": [*reg, "--method", "deepmapping", *dm_args, "--no-plots", "--out", work / "R2b"],
-        "direct": [*reg, "--method", "direct", *TINY, "--out", work / "R3"],
-    }
-    results = dm_many(jobs)
-    outs = {"icp-plane": "R1", "deepmapping": "R2", "deepmapping-again": "R2b", "direct": "R3"}
-    return {name: (work / outs[name], res) for name, res in results.items()}
+def runs(tmp_path_factory, data16) -> dict[str, tuple[Path, subprocess.CompletedProcess]]:
+    """icp-plane, deepmapping (twice, same seed), direct: run concurrently, once."""
+
+    def build(folder: Path) -> dict:
+        reg = ["register", data16]
+        dm_args = [*TINY, *DM_SETS, "--seed", RUN_SEED, "--device", "cpu"]
+        jobs = {
+            "icp-plane": [*reg, "--method", "icp-plane", "--out", folder / "R1"],
+            "deepmapping": [*reg, "--method", "deepmapping", *dm_args, "--out", folder / "R2"],
+            "deepmapping-again": [*reg, "--method", "deepmapping", *dm_args, "--no-plots", "--out", folder / "R2b"],
+            "direct": [*reg, "--method", "direct", *TINY, "--out", folder / "R3"],
+        }
+        results = dm_many(jobs)
+        return {name: {"out": str(jobs[name][-1]), **_to_json(res)} for name, res in results.items()}
+
+    built = _shared(tmp_path_factory, "runs", build)
+    return {name: (Path(d["out"]), _from_json(d)) for name, d in built.items()}
 
 
 # ------------------------------------------------------------------------------------------
@@ -165,9 +194,11 @@ def test_register_no_plots_skips_pictures(runs):
     assert not list(out.glob("*.png"))
 
 
-def test_evaluate_prints_table_and_rewrites_metrics(runs):
-    out, res = runs["icp-plane"]
+def test_evaluate_prints_table_and_rewrites_metrics(runs, tmp_path):
+    src, res = runs["icp-plane"]
     ok(res)
+    out = tmp_path / "R1copy"  # a copy: other tests read the original run folder
+    shutil.copytree(src, out)
     before = json.loads((out / "metrics.json").read_text())
     (out / "metrics.json").write_text("{}\n")
     ev = ok(dm("evaluate", out))
@@ -314,14 +345,17 @@ BAD_CASES = [
 
 
 @pytest.fixture(scope="module")
-def bad_results(work, data16):
-    root = work / "bad"
-    root.mkdir()
-    cases = _build_bad_cases(data16, root)
-    assert sorted(cases) == sorted(BAD_CASES)
-    outs = {name: root / f"out_{name}" for name in cases}
-    results = dm_many({name: ["register", *args, "--out", outs[name]] for name, (args, _) in cases.items()})
-    return {name: (results[name], cases[name][1], outs[name]) for name in cases}
+def bad_results(tmp_path_factory, data16):
+    def build(root: Path) -> dict:
+        cases = _build_bad_cases(data16, root)
+        assert sorted(cases) == sorted(BAD_CASES)
+        outs = {name: root / f"out_{name}" for name in cases}
+        results = dm_many({name: ["register", *args, "--out", outs[name]] for name, (args, _) in cases.items()})
+        return {name: {"names": cases[name][1], "out": str(outs[name]), **_to_json(results[name])}
+                for name in cases}
+
+    built = _shared(tmp_path_factory, "bad", build)
+    return {name: (_from_json(d), d["names"], Path(d["out"])) for name, d in built.items()}
 
 
 @pytest.mark.parametrize("case", BAD_CASES)
@@ -377,6 +411,7 @@ def test_ctrl_c_saves_checkpoint_and_resume_finishes(data16, tmp_path):
 
     saved = torch.load(out / "checkpoint.pt", map_location="cpu", weights_only=False)
     stopped_at = saved["epoch"]
+    print(f"interrupted at epoch {stopped_at}")
     assert 0 < stopped_at < CTRL_C_EPOCHS, f"checkpoint at epoch {stopped_at}"
 
     res = ok(dm("register", data16, "--out", out, "--resume", "--no-plots"))

@@ -113,7 +113,7 @@ def test_occupancy_loss_is_lower_at_true_poses(small_scans):
 
 
 def _quick_cfg(**over):
-    base = {"optim.epochs": 4, "optim.eval_every": 1, "warm_start.method": "icp-plane"}
+    base = {"optim.epochs": 4, "optim.eval_every": 1, "warm_start.method": "icp-plane", "optim.mnet_warmup_epochs": 0}
     return load_config("default", overrides=base | over)
 
 
@@ -182,3 +182,34 @@ def test_paper_profile_is_the_paper_setup():
     assert cfg.loss.free_samples == 19 and cfg.loss.beams_per_scan is None
     assert cfg.optim.batch_size == 128 and cfg.optim.epochs == 3000 and cfg.optim.lr == 1e-3
     assert cfg.loss.chamfer_weight == 10.0
+
+
+def test_near_hit_free_space_samples_lie_just_before_the_hit():
+    gen = torch.Generator().manual_seed(0)
+    pts = torch.randn(3, 40, 2)
+    t = sampling.near_hit_fractions(pts, 5, 0.05, gen)
+    dist_before_hit = (1 - t) * pts.norm(dim=-1, keepdim=True)
+    assert t.shape == (3, 40, 5) and (t >= 0).all() and (t <= 1).all()
+    assert (dist_before_hit <= 0.05 + 1e-6).all()
+
+
+@pytest.mark.parametrize("kind", ["mlp", "fourier", "grid"])
+def test_mnet_kinds_give_gradients_to_coordinates(kind):
+    from deepmapping.solver.networks import MNet
+
+    over = {"mnet.kind": kind, "mnet.fourier_features": 4} if kind != "mlp" else {}
+    net = MNet(load_config("default", overrides=over).mnet)
+    xy = (torch.rand(4, 7, 2) * 2 - 1).requires_grad_(True)
+    out = net(xy)
+    assert out.shape == (4, 7)
+    out.sum().backward()
+    assert xy.grad.abs().sum() > 0
+
+
+def test_mnet_warmup_holds_poses_then_releases_them(small_scans):
+    from deepmapping.api import register
+
+    held = register(small_scans, _quick_cfg(**{"optim.mnet_warmup_epochs": 3, "optim.epochs": 3}))
+    np.testing.assert_allclose(held.poses, held.init_poses, atol=1e-6)
+    moved = register(small_scans, _quick_cfg(**{"optim.mnet_warmup_epochs": 1, "optim.epochs": 3}))
+    assert not np.allclose(moved.poses, moved.init_poses, atol=1e-6)

@@ -36,15 +36,22 @@ class LNetConfig(_Section):
 class MNetConfig(_Section):
     """M-Net m_phi: global coordinate -> occupancy logit."""
 
-    kind: Literal["mlp", "fourier"] = "mlp"
+    kind: Literal["mlp", "fourier", "grid"] = "mlp"
     hidden: list[int] = [64, 512, 512, 256, 128]
     fourier_features: int = 0  # number of log-spaced frequencies per axis (kind="fourier")
     fourier_max_freq: float = 32.0  # highest frequency: period 2/f on the map normalized to [-1, 1]
+    grid_levels: int = 6  # kind="grid": multi-resolution feature grids
+    grid_features: int = 4
+    grid_base: int = 16  # coarsest resolution (cells across the map)
+    grid_finest: int = 512
+    lr_factor: float = 1.0  # M-Net learning rate = optim.lr * lr_factor
 
 
 class LossConfig(_Section):
     free_samples: int = 19  # free-space samples per beam (paper: 19)
     free_sampling: Literal["uniform", "stratified"] = "uniform"
+    near_hit_samples: int = 0  # extra free-space samples on each beam just before its hit
+    near_hit_distance: float = 0.02  # ... within this distance of the hit (normalized map units)
     beams_per_scan: int | None = None  # None = every beam each step; else a random subset
     chamfer_weight: float = 10.0  # lambda of eq. 6 (paper: 10 for 2D)
     chamfer_window: int = 1  # N(i) = {i-w, ..., i+w} \ {i}
@@ -129,7 +136,8 @@ PROFILES: dict[str, dict] = {
         "lnet": {"conv_channels": [32, 64, 256], "fc_channels": [256, 128], "zero_init_output": True},
         "mnet": {"kind": "fourier", "hidden": [128, 128, 128], "fourier_features": 16},
         "loss": {"free_samples": 4, "free_sampling": "stratified", "beams_per_scan": 64},
-        "optim": {"batch_size": 32, "epochs": 400, "lr_final_factor": 0.05, "eval_every": 10},
+        "optim": {"batch_size": 32, "epochs": 200, "lr_final_factor": 0.05,
+                  "eval_every": 10},
     },
 }
 

@@ -35,14 +35,16 @@ def resume_config(out: Path):
 
 
 def run_register(data: Path, out: Path, cfg, fmt, gt, resume: bool, plots: bool = True, quiet: bool = False):
-    from deepmapping.api import register, resolve_device
     from deepmapping.io.loaders import load_scans
+
+    # every input problem is raised before out/ exists (the --init file and the device included),
+    # and before torch is imported, so bad input fails fast
+    init = cfg.warm_start.path if cfg.warm_start.method == "file" and not resume else None
+    scans = load_scans(data, fmt=fmt, gt_path=gt, init_path=init)
+    from deepmapping.api import register, resolve_device
     from deepmapping.solver.trainer import Interrupted
     from deepmapping.tools.run_dir import write_config, write_json, write_run
 
-    # every input problem is raised before out/ exists (the --init file and the device included)
-    init = cfg.warm_start.path if cfg.warm_start.method == "file" and not resume else None
-    scans = load_scans(data, fmt=fmt, gt_path=gt, init_path=init)
     if cfg.method in ("deepmapping", "direct"):
         resolve_device(cfg.device)
     info = {"data": str(data.resolve()), "format": fmt, "gt": str(Path(gt).resolve()) if gt else None}

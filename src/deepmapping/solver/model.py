@@ -20,6 +20,7 @@ class DeepMappingModel(nn.Module):
         self.register_buffer("scans", scans)
         self.register_buffer("init_poses", init_poses)
         self.direct_poses: nn.Parameter | None = None
+        self.mnet_lr_factor = cfg.mnet.lr_factor
 
     def poses(self, idx: torch.Tensor) -> torch.Tensor:
         if self.direct_poses is not None:
@@ -40,4 +41,5 @@ class DeepMappingModel(nn.Module):
     def param_groups(self) -> list[dict]:
         """Two optimizer groups: what produces the poses (L-Net or direct poses), and the M-Net."""
         pose_params = [self.direct_poses] if self.direct_poses is not None else list(self.lnet.parameters())
-        return [{"params": pose_params, "name": "poses"}, {"params": list(self.mnet.parameters()), "name": "mnet"}]
+        return [{"params": pose_params, "name": "poses", "lr_factor": 1.0},
+                {"params": list(self.mnet.parameters()), "name": "mnet", "lr_factor": self.mnet_lr_factor}]

@@ -59,12 +59,34 @@ class FourierEncoding(nn.Module):
         return torch.cat([x, enc], dim=-1)
 
 
+class GridEncoding(nn.Module):
+    """Multi-resolution dense feature grids (2D), bilinearly interpolated and concatenated.
+
+    Level l has a resolution growing geometrically from `base` to `finest` cells across the
+    normalized map [-1, 1]^2; coarse levels give wide, smooth basins, fine ones sharp walls.
+    """
+
+    def __init__(self, levels: int, features: int, base: int, finest: int):
+        super().__init__()
+        growth = (finest / base) ** (1.0 / max(levels - 1, 1))
+        res = [int(round(base * growth**i)) for i in range(levels)]
+        self.grids = nn.ParameterList(nn.Parameter(torch.empty(1, features, r, r).uniform_(-1e-2, 1e-2)) for r in res)
+        self.out_dim = levels * features
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        flat = x.reshape(1, 1, -1, 2)
+        feats = [torch.nn.functional.grid_sample(g, flat, mode="bilinear", padding_mode="border", align_corners=True)
+                 for g in self.grids]
+        return torch.cat(feats, dim=1)[0, :, 0].T.reshape(*x.shape[:-1], -1)
+
+
 class MNet(nn.Module):
     """M-Net: a global coordinate -> occupancy logit (sigmoid gives the probability).
 
     Paper: FC(64)-FC(512)-FC(512)-FC(256)-FC(128)-FC(1) on the raw coordinate ("mlp").
-    "fourier" feeds a positional encoding of the coordinate to a smaller MLP: the map stays a
-    continuous function of the coordinate, queryable at any resolution.
+    "fourier" feeds a positional encoding of the coordinate to a smaller MLP; "grid" feeds
+    bilinearly interpolated multi-resolution features. Either way the map stays a continuous
+    function of the coordinate, queryable at any resolution.
     """
 
     def __init__(self, cfg: MNetConfig, in_dim: int = 2):
@@ -73,6 +95,11 @@ class MNet(nn.Module):
         prev = in_dim
         if cfg.kind == "fourier":
             self.encoding = FourierEncoding(in_dim, cfg.fourier_features, cfg.fourier_max_freq)
+            prev = self.encoding.out_dim
+        elif cfg.kind == "grid":
+            if in_dim != 2:
+                raise ValueError("the grid M-Net is 2D only")
+            self.encoding = GridEncoding(cfg.grid_levels, cfg.grid_features, cfg.grid_base, cfg.grid_finest)
             prev = self.encoding.out_dim
         layers: list[nn.Module] = []
         for ch in cfg.hidden:

@@ -30,6 +30,17 @@ def free_space_fractions(shape: tuple[int, ...], samples: int, mode: str, gen: t
     return u
 
 
+def near_hit_fractions(points: torch.Tensor, samples: int, distance: float, gen: torch.Generator) -> torch.Tensor:
+    """Fractions of free-space samples within `distance` before each hit: (B, N, samples).
+
+    Still on the beam between sensor and hit (label 0); they concentrate where a misaligned
+    scan's wall contradicts another scan's line of sight.
+    """
+    rng = points.norm(dim=-1, keepdim=True).clamp(min=1e-9)
+    u = torch.rand(points.shape[:2] + (samples,), generator=gen, device=points.device)
+    return (1.0 - u * distance / rng).clamp(min=0.0)
+
+
 def free_space_points(points: torch.Tensor, fractions: torch.Tensor) -> torch.Tensor:
     """Sensor-frame free-space samples t·p on the segment from the sensor (origin) to p: (B, N, S, D)."""
     return points[:, :, None, :] * fractions[..., None]

@@ -15,7 +15,7 @@ from deepmapping.solver import checkpoint as ckpt
 from deepmapping.solver.geometry import transform
 from deepmapping.solver.loss import chamfer_loss, occupancy_bce
 from deepmapping.solver.model import DeepMappingModel
-from deepmapping.solver.sampling import free_space_fractions, free_space_points, select_beams
+from deepmapping.solver.sampling import free_space_fractions, free_space_points, near_hit_fractions, select_beams
 
 
 class Interrupted(Exception):
@@ -75,6 +75,8 @@ class Trainer:
         pts, pv = select_beams(scans, valid, cfg.beams_per_scan, self.gen)
         occ_global = transform(poses, pts)
         t = free_space_fractions(pv.shape, cfg.free_samples, cfg.free_sampling, self.gen, self.device)
+        if cfg.near_hit_samples:
+            t = torch.cat([t, near_hit_fractions(pts, cfg.near_hit_samples, cfg.near_hit_distance, self.gen)], -1)
         free_global = transform(poses, free_space_points(pts, t))
         occ_logits = self.model.mnet(occ_global)  # (B, M)
         free_logits = self.model.mnet(free_global)  # (B, M, S)
@@ -88,7 +90,7 @@ class Trainer:
         lr = self.lr_at(self.state.step)
         warmup = self.state.epoch < self.cfg.optim.mnet_warmup_epochs
         for g in self.opt.param_groups:
-            g["lr"] = 0.0 if (warmup and g["name"] == "poses") else lr
+            g["lr"] = 0.0 if (warmup and g["name"] == "poses") else lr * g["lr_factor"]
         total, bce, ch = self.loss(torch.as_tensor(idx, device=self.device))
         self.opt.zero_grad(set_to_none=True)
         total.backward()
