@@ -13,7 +13,6 @@ import argparse
 import json
 import platform
 import resource
-import time
 from datetime import date
 from pathlib import Path
 

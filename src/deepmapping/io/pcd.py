@@ -9,13 +9,13 @@ little-endian, as written by PCL and Open3D.
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
-from typing import Callable, IO
+from typing import IO
 
 import numpy as np
 
 from deepmapping.errors import InputError
+from deepmapping.io.atomic import atomic_write
 
 __all__ = ["write_pcd", "read_pcd", "atomic_write"]
 
@@ -34,29 +34,6 @@ _PCD_TYPES: dict[tuple[str, int], str] = {
 }
 _HEADER_KEYS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS", "DATA")
 _MAX_HEADER_LINES = 256
-
-
-def atomic_write(path: str | os.PathLike, writer: Callable[[IO[bytes]], None]) -> None:
-    """Write a file atomically: ``writer(f)`` fills a temp file in the same folder, then os.replace.
-
-    A reader never sees a half-written file; on error the temp file is removed and the
-    previous content of ``path`` (if any) is left untouched.
-    """
-    path = Path(path)
-    folder = path.parent if str(path.parent) else Path(".")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            writer(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
 
 
 def _as_xyz(points: np.ndarray) -> np.ndarray:

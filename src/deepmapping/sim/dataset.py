@@ -7,13 +7,12 @@ Units: the authors' layout stores points and (after loading) positions in px/512
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
-from typing import IO, Callable
 
 import numpy as np
 
 from deepmapping.data import ScanSet
+from deepmapping.io.atomic import atomic_write
 from deepmapping.sim.maps import procedural_indoor_map, save_map_png
 from deepmapping.sim.scanner import simulate_scans
 from deepmapping.sim.trajectory import sample_trajectory
@@ -71,21 +70,6 @@ def simulate(
     )
 
 
-def _atomic_write(path: Path, writer: Callable[[IO[bytes]], None]) -> None:
-    """Fill a temp file in the same folder with ``writer(f)``, then os.replace it onto ``path``."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            writer(f)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-
-
 def _trajectory_picture(occ: np.ndarray, poses_px: np.ndarray):  # type: ignore[no-untyped-def]
     """RGB picture of the map with the trajectory (green), poses (red) and headings (blue)."""
     from PIL import Image, ImageDraw
@@ -105,7 +89,7 @@ def _trajectory_picture(occ: np.ndarray, poses_px: np.ndarray):  # type: ignore[
 
 
 def _save_png(path: Path, image) -> None:  # type: ignore[no-untyped-def]
-    _atomic_write(path, lambda f: image.save(f, format="PNG"))
+    atomic_write(path, lambda f: image.save(f, format="PNG"))
 
 
 def write_authors_layout(
@@ -157,7 +141,7 @@ def write_authors_layout(
         xyz = np.zeros((n, 3), dtype=np.float32)
         xyz[:, :2] = np.where(mask[i][:, None], points[i], 0.0)
         write_pcd(out / f"{i:03d}.pcd", xyz)  # write_pcd writes atomically itself
-    _atomic_write(out / "gt_pose.mat", lambda f: scipy.io.savemat(f, {"pose": gt}))
+    atomic_write(out / "gt_pose.mat", lambda f: scipy.io.savemat(f, {"pose": gt}))
     if occ is not None:
         from PIL import Image
 

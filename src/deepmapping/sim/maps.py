@@ -7,7 +7,6 @@ x in [c, c+1), y in [r, r+1) (docs/conventions.md).
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,6 +14,7 @@ import numpy as np
 from scipy import ndimage
 
 from deepmapping.errors import InputError
+from deepmapping.io.atomic import atomic_write
 
 __all__ = ["procedural_indoor_map", "load_map_png", "save_map_png"]
 
@@ -263,19 +263,4 @@ def save_map_png(path: str | os.PathLike, occ: np.ndarray) -> None:
     img = np.where(occ >= 128, FREE, OBSTACLE).astype(np.uint8) if occ.dtype != bool else (
         np.where(occ, FREE, OBSTACLE).astype(np.uint8)
     )
-    _atomic_save_image(Image.fromarray(img), Path(path))
-
-
-def _atomic_save_image(image, path: Path) -> None:  # type: ignore[no-untyped-def]
-    folder = path.parent if str(path.parent) else Path(".")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            image.save(f, format="PNG")
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    atomic_write(Path(path), lambda f: Image.fromarray(img).save(f, format="PNG"))
