@@ -29,3 +29,18 @@ def atomic_write(path: str | os.PathLike, writer: Callable[[IO[bytes]], None]) -
         except OSError:
             pass
         raise
+
+
+def read_user_file(path) -> bytes:
+    """The bytes of a user's input file; InputError naming the file when it cannot be read."""
+    from deepmapping.errors import InputError
+
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: file not found")
+    if not path.is_file():
+        raise InputError(f"{path}: not a file")
+    try:
+        return path.read_bytes()
+    except OSError as e:
+        raise InputError(f"{path}: cannot read ({e.strerror or e})") from None

@@ -15,7 +15,7 @@ from typing import IO
 import numpy as np
 
 from deepmapping.errors import InputError
-from deepmapping.io.atomic import atomic_write
+from deepmapping.io.atomic import atomic_write, read_user_file
 
 __all__ = ["write_pcd", "read_pcd", "atomic_write"]
 
@@ -126,14 +126,7 @@ def read_pcd(path: str | os.PathLike) -> np.ndarray:
     missing x or y fields, truncated data, or ``DATA binary_compressed``.
     """
     path = Path(path)
-    if not path.exists():
-        raise InputError(f"{path}: file not found")
-    if not path.is_file():
-        raise InputError(f"{path}: not a file")
-    try:
-        raw = path.read_bytes()
-    except OSError as e:
-        raise InputError(f"{path}: cannot read ({e.strerror or e})") from None
+    raw = read_user_file(path)
 
     header, offset = _parse_header(path, raw)
     if "FIELDS" not in header or not header["FIELDS"]:

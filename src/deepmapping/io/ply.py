@@ -13,7 +13,7 @@ from typing import IO
 import numpy as np
 
 from deepmapping.errors import InputError
-from deepmapping.io.pcd import atomic_write
+from deepmapping.io.atomic import atomic_write, read_user_file
 
 __all__ = ["write_ply", "read_ply"]
 
@@ -153,14 +153,7 @@ def read_ply(path: str | os.PathLike) -> np.ndarray:
     header, no vertex element or no x/y properties, truncated or non-numeric data.
     """
     path = Path(path)
-    if not path.exists():
-        raise InputError(f"{path}: file not found")
-    if not path.is_file():
-        raise InputError(f"{path}: not a file")
-    try:
-        raw = path.read_bytes()
-    except OSError as e:
-        raise InputError(f"{path}: cannot read ({e.strerror or e})") from None
+    raw = read_user_file(path)
     fmt, elements, offset = _parse_header(path, raw)
     vidx = next((i for i, e in enumerate(elements) if e.name == "vertex"), None)
     if vidx is None:
