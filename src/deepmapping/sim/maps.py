@@ -6,6 +6,7 @@ x in [c, c+1), y in [r, r+1) (docs/conventions.md).
 
 from __future__ import annotations
 
+import io
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,7 +15,7 @@ import numpy as np
 from scipy import ndimage
 
 from deepmapping.errors import InputError
-from deepmapping.io.atomic import atomic_write
+from deepmapping.io.atomic import atomic_write, read_user_file
 
 __all__ = ["procedural_indoor_map", "load_map_png", "save_map_png"]
 
@@ -233,13 +234,9 @@ def load_map_png(path: str | os.PathLike) -> np.ndarray:
     """
     from PIL import Image, UnidentifiedImageError
 
-    p = Path(path)
-    if not p.exists():
-        raise InputError(f"{path}: file not found")
-    if not p.is_file():
-        raise InputError(f"{path}: not a file")
+    raw = read_user_file(path)
     try:
-        with Image.open(p) as im:
+        with Image.open(io.BytesIO(raw)) as im:
             im.load()
             if im.mode in ("RGBA", "LA", "P"):
                 im = im.convert("RGBA")

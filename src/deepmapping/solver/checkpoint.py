@@ -24,7 +24,7 @@ def save(path, trainer) -> None:
         "elapsed_s": st.elapsed_s,
         "history": st.history,
         "config": trainer.cfg.model_dump(),
-        **getattr(trainer, "extra", {}),
+        **trainer.extra,
     }
     tmp = path.with_name(path.name + ".tmp")
     torch.save(data, tmp)

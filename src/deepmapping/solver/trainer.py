@@ -57,6 +57,7 @@ class Trainer:
         self.steps_per_epoch = len(epoch_batches(k, cfg.optim.batch_size, np.random.default_rng(0)))
         self.total_steps = cfg.optim.epochs * self.steps_per_epoch
         self.state = TrainState()
+        self.extra: dict = {}  # saved with every checkpoint (e.g. the warm start and the frame)
 
     # -- one step -----------------------------------------------------------------------
     def lr_at(self, step: int) -> float:
