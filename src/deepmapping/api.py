@@ -143,10 +143,10 @@ def _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch) -> Result:
 def _occupancy_fn(model, frame, device):
     import torch
 
-    def occupancy(xy: np.ndarray) -> np.ndarray:
+    def occupancy(xy: np.ndarray, chunk: int = 65536) -> np.ndarray:
         q = torch.as_tensor((np.asarray(xy) - frame.center) / frame.scale, dtype=torch.float32, device=device)
-        with torch.no_grad():
-            return torch.sigmoid(model.mnet(q)).cpu().numpy()
+        with torch.no_grad():  # in chunks: a picture's million query points stay in bounded memory
+            return torch.cat([torch.sigmoid(model.mnet(q[i : i + chunk])) for i in range(0, max(len(q), 1), chunk)]).cpu().numpy()
 
     return occupancy
 

@@ -31,6 +31,14 @@ class LNetConfig(_Section):
     dilation: int = 2
     fc_channels: list[int] = [512, 256]
     zero_init_output: bool = False  # start as identity correction when warm-started
+    # Standardize the pooled and hidden features with statistics fixed by one pass over all
+    # scans at the start. Without it the features of all scans are nearly parallel, and the
+    # L-Net learns one shared correction first and per-scan corrections very slowly.
+    feature_norm: bool = False
+    lr_factor: float = 1.0  # L-Net learning rate = optim.lr * lr_factor (direct poses use optim.lr)
+    # Also feed the L-Net its scan's warm-start pose (x, y, cos, sin with this many Fourier
+    # frequencies; 0 = the scan only, as in the paper).
+    pose_input_freqs: int = 0
 
 
 class MNetConfig(_Section):
@@ -133,11 +141,11 @@ PROFILES: dict[str, dict] = {
     "paper": {},
     # Fast path, measured in benchmarks/ (docs/method.md explains each change).
     "default": {
-        "lnet": {"conv_channels": [32, 64, 256], "fc_channels": [256, 128], "zero_init_output": True},
+        "lnet": {"conv_channels": [32, 64, 128], "fc_channels": [256, 128], "zero_init_output": True,
+                 "feature_norm": True, "lr_factor": 0.1, "pose_input_freqs": 8},
         "mnet": {"kind": "fourier", "hidden": [128, 128, 128], "fourier_features": 16},
         "loss": {"free_samples": 4, "free_sampling": "stratified", "beams_per_scan": 64},
-        "optim": {"batch_size": 32, "epochs": 200, "lr_final_factor": 0.05,
-                  "eval_every": 10},
+        "optim": {"batch_size": 64, "epochs": 250, "lr_final_factor": 0.05, "eval_every": 10},
     },
 }
 

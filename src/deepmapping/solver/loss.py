@@ -22,26 +22,33 @@ def occupancy_bce(occ_logits: torch.Tensor, occ_mask: torch.Tensor,
     return masked_mean(occ, occ_mask) + masked_mean(free, free_mask)
 
 
-def _matched_distance(x, xv, y, idx) -> torch.Tensor:
-    """Mean over valid x of the distance to y[idx] (with gradient), per pair."""
-    matched = y.gather(1, idx[..., None].expand(-1, -1, y.shape[2]))
-    dist = ((x - matched).pow(2).sum(-1) + 1e-12).sqrt()
-    return (dist * xv).sum(1) / xv.sum(1).clamp(min=1)
+def nearest_distance(q: torch.Tensor, qv: torch.Tensor, t: torch.Tensor, tv: torch.Tensor) -> torch.Tensor:
+    """Mean over valid queries q (P, n, D) of the distance to the nearest valid t (P, m, D) -> (P,).
+
+    The neighbour is searched without gradient and the distance to it re-evaluated with
+    gradient (same value and gradient as the minimum, 5x faster).
+    """
+    with torch.no_grad():
+        d = torch.cdist(q, t).masked_fill(~tv[:, None, :], float("inf"))
+        nn_idx = d.argmin(dim=2)
+    matched = t.gather(1, nn_idx[..., None].expand(-1, -1, t.shape[2]))
+    dist = ((q - matched).pow(2).sum(-1) + 1e-12).sqrt()
+    return (dist * qv).sum(1) / qv.sum(1).clamp(min=1)
 
 
-def chamfer(x: torch.Tensor, xv: torch.Tensor, y: torch.Tensor, yv: torch.Tensor) -> torch.Tensor:
+def chamfer(x: torch.Tensor, xv: torch.Tensor, y: torch.Tensor, yv: torch.Tensor,
+            xq: torch.Tensor | None = None, xqv: torch.Tensor | None = None,
+            yq: torch.Tensor | None = None, yqv: torch.Tensor | None = None) -> torch.Tensor:
     """Eq. 5 for P pairs at once: x (P, N, D), y (P, M, D) with validity masks -> (P,).
 
     Two-way mean Euclidean distance to the nearest point of the other cloud; invalid points
-    neither count nor serve as neighbours. Nearest neighbours are searched without gradient
-    and the distances to them re-evaluated with gradient (same value and gradient).
+    neither count nor serve as neighbours. Optional query subsets xq of x and yq of y (the
+    beams sampled this step) estimate each mean from fewer points, against the full clouds.
     """
-    with torch.no_grad():
-        d = torch.cdist(x, y)
-        d = d.masked_fill(~yv[:, None, :], float("inf")).masked_fill(~xv[:, :, None], float("inf"))
-        x_to_y, y_to_x = d.argmin(dim=2), d.argmin(dim=1)
+    xq, xqv = (x, xv) if xq is None else (xq, xqv)
+    yq, yqv = (y, yv) if yq is None else (yq, yqv)
     has = (xv.any(1) & yv.any(1)).to(x.dtype)
-    return (_matched_distance(x, xv, y, x_to_y) + _matched_distance(y, yv, x, y_to_x)) * has
+    return (nearest_distance(xq, xqv, y, yv) + nearest_distance(yq, yqv, x, xv)) * has
 
 
 def temporal_pairs(indices: torch.Tensor, window: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -51,9 +58,17 @@ def temporal_pairs(indices: torch.Tensor, window: int) -> tuple[torch.Tensor, to
     return a, b
 
 
-def chamfer_loss(glob: torch.Tensor, valid: torch.Tensor, indices: torch.Tensor, window: int) -> torch.Tensor:
-    """Eq. 7 averaged over the neighbour pairs present in the batch (0 when there are none)."""
+def chamfer_loss(glob: torch.Tensor, valid: torch.Tensor, indices: torch.Tensor, window: int,
+                 queries: torch.Tensor | None = None, queries_valid: torch.Tensor | None = None) -> torch.Tensor:
+    """Eq. 7 averaged over the neighbour pairs present in the batch (0 when there are none).
+
+    glob (B, N, D): whole scans in the global frame; queries (B, n, D): optional subsets of them
+    whose distances to the neighbour's whole scan estimate the two means of eq. 5.
+    """
     a, b = temporal_pairs(indices, window)
     if a.numel() == 0:
         return glob.new_zeros(())
-    return chamfer(glob[a], valid[a], glob[b], valid[b]).mean()
+    if queries is None:
+        return chamfer(glob[a], valid[a], glob[b], valid[b]).mean()
+    return chamfer(glob[a], valid[a], glob[b], valid[b], queries[a], queries_valid[a],
+                   queries[b], queries_valid[b]).mean()

@@ -21,11 +21,16 @@ class DeepMappingModel(nn.Module):
         self.register_buffer("init_poses", init_poses)
         self.direct_poses: nn.Parameter | None = None
         self.mnet_lr_factor = cfg.mnet.lr_factor
+        self.lnet_lr_factor = cfg.lnet.lr_factor
+        if cfg.lnet.feature_norm:  # statistics from (an even spread of at most 512 of) all scans
+            k = scans.shape[0]
+            spread = torch.linspace(0, k - 1, min(k, 512), device=scans.device).long()
+            self.lnet.calibrate(scans[spread], init_poses[spread])
 
     def poses(self, idx: torch.Tensor) -> torch.Tensor:
         if self.direct_poses is not None:
             return self.direct_poses[idx]
-        return compose(self.init_poses[idx], self.lnet(self.scans[idx]))
+        return compose(self.init_poses[idx], self.lnet(self.scans[idx], self.init_poses[idx]))
 
     @torch.no_grad()
     def all_poses(self, chunk: int = 256) -> torch.Tensor:
@@ -40,6 +45,9 @@ class DeepMappingModel(nn.Module):
 
     def param_groups(self) -> list[dict]:
         """Two optimizer groups: what produces the poses (L-Net or direct poses), and the M-Net."""
-        pose_params = [self.direct_poses] if self.direct_poses is not None else list(self.lnet.parameters())
-        return [{"params": pose_params, "name": "poses", "lr_factor": 1.0},
+        if self.direct_poses is not None:
+            pose_group = {"params": [self.direct_poses], "name": "poses", "lr_factor": 1.0}
+        else:
+            pose_group = {"params": list(self.lnet.parameters()), "name": "poses", "lr_factor": self.lnet_lr_factor}
+        return [pose_group,
                 {"params": list(self.mnet.parameters()), "name": "mnet", "lr_factor": self.mnet_lr_factor}]

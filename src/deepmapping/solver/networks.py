@@ -10,6 +10,26 @@ from torch import nn
 from deepmapping.config import LNetConfig, MNetConfig
 
 
+class Standardize(nn.Module):
+    """x -> (x - mean) / std, with the statistics of one pass over all scans at the start.
+
+    The statistics are then fixed buffers (saved in checkpoints): unlike batch normalization a
+    pose never depends on which scans share a batch, and evaluation equals training.
+    """
+
+    def __init__(self, dim: int):
+        super().__init__()
+        self.register_buffer("mean", torch.zeros(dim))
+        self.register_buffer("std", torch.ones(dim))
+        self.calibrating = False
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.calibrating:
+            self.mean.copy_(x.mean(0))
+            self.std.copy_(x.std(0, unbiased=False) + 1e-5)
+        return (x - self.mean) / self.std
+
+
 class LNet(nn.Module):
     """L-Net for organized 2D scans: C(64)-C(128)-C(1024)-M(1024)-FC(512)-FC(256)-FC(3) in the paper.
 
@@ -27,9 +47,13 @@ class LNet(nn.Module):
             layers += [nn.Conv1d(prev, ch, cfg.kernel_size, dilation=cfg.dilation, padding=pad), nn.ReLU()]
             prev = ch
         self.features = nn.Sequential(*layers)
-        mlp: list[nn.Module] = []
+        self.pose_encoding: FourierEncoding | None = None
+        if cfg.pose_input_freqs:
+            self.pose_encoding = FourierEncoding(4, cfg.pose_input_freqs, 2.0 ** (cfg.pose_input_freqs - 1))
+            prev += self.pose_encoding.out_dim
+        mlp: list[nn.Module] = [Standardize(prev)] if cfg.feature_norm else []
         for ch in cfg.fc_channels:
-            mlp += [nn.Linear(prev, ch), nn.ReLU()]
+            mlp += [nn.Linear(prev, ch)] + ([Standardize(ch)] if cfg.feature_norm else []) + [nn.ReLU()]
             prev = ch
         self.head = nn.Sequential(*mlp)
         self.out = nn.Linear(prev, out_dim)
@@ -37,10 +61,28 @@ class LNet(nn.Module):
             nn.init.zeros_(self.out.weight)
             nn.init.zeros_(self.out.bias)
 
-    def forward(self, scans: torch.Tensor) -> torch.Tensor:
-        """scans (B, N, D) in sensor frames -> poses (B, 3) = (tx, ty, theta)."""
+    @torch.no_grad()
+    def calibrate(self, scans: torch.Tensor, init_poses: torch.Tensor | None = None) -> None:
+        """Set the Standardize statistics from these scans, layer after layer (one forward pass)."""
+        norms = [m for m in self.modules() if isinstance(m, Standardize)]
+        for m in norms:
+            m.calibrating = True
+        try:
+            self(scans, init_poses)
+        finally:
+            for m in norms:
+                m.calibrating = False
+
+    def forward(self, scans: torch.Tensor, init_poses: torch.Tensor | None = None) -> torch.Tensor:
+        """scans (B, N, D) in sensor frames -> poses (B, 3) = (tx, ty, theta).
+
+        init_poses (B, 3): the warm-start poses, used only when pose_input_freqs > 0."""
         feat = self.features(scans.transpose(1, 2))  # (B, C, N)
         pooled = feat.amax(dim=2)  # M(n): global max-pool over beams
+        if self.pose_encoding is not None:
+            th = init_poses[:, 2:]
+            pose = torch.cat([init_poses[:, :2], torch.cos(th), torch.sin(th)], dim=1)
+            pooled = torch.cat([pooled, self.pose_encoding(pose)], dim=1)
         return self.out(self.head(pooled))
 
 

@@ -84,7 +84,8 @@ class Trainer:
         bce = occupancy_bce(occ_logits, pv, free_logits, pv[..., None].expand_as(free_logits))
         if not self.use_chamfer:
             return bce, bce, bce.new_zeros(())
-        ch = chamfer_loss(transform(poses, scans), valid, idx, cfg.chamfer_window)
+        # the beams sampled for eq. 4 are also the Chamfer queries (all beams in the paper profile)
+        ch = chamfer_loss(transform(poses, scans), valid, idx, cfg.chamfer_window, occ_global, pv)
         return bce + self.cfg.loss.chamfer_weight * ch, bce, ch
 
     def step(self, idx: np.ndarray) -> tuple[float, float, float]:
