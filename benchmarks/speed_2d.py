@@ -84,18 +84,14 @@ def time_to_reach(curve: list, threshold: float) -> float | None:
     return reached
 
 
-def in_fresh_process(pool, fn, *args) -> dict:
-    return pool.submit(fn, *args).result()
-
-
-def simulate_to_disk(root: Path, t: int, poses: int, seed: int | None = None) -> Path:
+def simulate_to_disk(root: Path, t: int, poses: int) -> Path:
     from deepmapping.sim.dataset import simulate, write_authors_layout
     from deepmapping.sim.maps import procedural_indoor_map
 
     folder = root / f"traj{t}_K{poses}"
     if not (folder / "gt_pose.mat").exists():
         occ = procedural_indoor_map(t % 3)
-        write_authors_layout(folder, simulate(occ, poses, seed=t if seed is None else seed), occ=occ)
+        write_authors_layout(folder, simulate(occ, poses, seed=t), occ=occ)
     return folder
 
 
@@ -232,7 +228,7 @@ def main() -> None:
                 if not name.startswith("icp"):
                     over = over | extra
                 run_dir = str(args.out / "runs" / f"traj{t}" / re.sub(r"[^a-z0-9]+", "_", name).strip("_"))
-                r = in_fresh_process(pool, run_method, str(data), run_dir, profile, over | {"seed": t}, args.threads)
+                r = pool.submit(run_method, str(data), run_dir, profile, over | {"seed": t}, args.threads).result()
                 results[name].append(r)
                 print(f"trajectory {t} {name}: ATE {r['ate']:.2f} px, wall {r['wall_s']:.1f} s, "
                       f"peak RSS {r['peak_rss_mb']:.0f} MB", flush=True)
@@ -240,8 +236,8 @@ def main() -> None:
             big = simulate_to_disk(args.out / "data", 0, args.scaling)
             small = prefix_copy(big, args.out / "data" / f"traj0_K{args.scaling}_first{args.poses}", args.poses)
             for key, folder in (("small", small), ("big", big)):
-                scaling[key] = in_fresh_process(pool, run_method, str(folder), str(args.out / "runs" / f"scaling_{key}"),
-                                                "default", {"seed": 0} | extra, args.threads)
+                scaling[key] = pool.submit(run_method, str(folder), str(args.out / "runs" / f"scaling_{key}"),
+                                           "default", {"seed": 0} | extra, args.threads).result()
                 print(f"scaling {key}: {scaling[key]['num_scans']} scans, ATE {scaling[key]['ate']:.2f} px, "
                       f"wall {scaling[key]['wall_s']:.1f} s", flush=True)
     meta = {"date": str(date.today()), "machine": f"{platform.machine()}, {args.threads} torch threads",

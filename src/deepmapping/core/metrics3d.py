@@ -24,13 +24,11 @@ def align_poses_3d(est, gt) -> np.ndarray:
 
 def ate_3d(est, gt) -> float:
     """RMSE of positions after alignment, in the units of gt."""
-    est, gt = _check(est, gt)
-    aligned = align_poses_3d(est, gt)
+    aligned, gt = align_poses_3d(est, gt), np.asarray(gt, dtype=np.float64)
     return float(np.sqrt(np.mean(np.sum((aligned[:, :3, 3] - gt[:, :3, 3]) ** 2, axis=1))))
 
 
 def rotation_errors_deg(est, gt) -> np.ndarray:
     """(K,) angle of R_gt^T R_est per pose after the same alignment as ATE (degrees)."""
-    est, gt = _check(est, gt)
-    aligned = align_poses_3d(est, gt)
+    aligned, gt = align_poses_3d(est, gt), np.asarray(gt, dtype=np.float64)
     return se3.rotation_angle_deg(np.swapaxes(gt[:, :3, :3], 1, 2) @ aligned[:, :3, :3])

@@ -68,7 +68,5 @@ def chamfer_loss(glob: torch.Tensor, valid: torch.Tensor, indices: torch.Tensor,
     a, b = temporal_pairs(indices, window)
     if a.numel() == 0:
         return glob.new_zeros(())
-    if queries is None:
-        return chamfer(glob[a], valid[a], glob[b], valid[b]).mean()
-    return chamfer(glob[a], valid[a], glob[b], valid[b], queries[a], queries_valid[a],
-                   queries[b], queries_valid[b]).mean()
+    q = (None,) * 4 if queries is None else (queries[a], queries_valid[a], queries[b], queries_valid[b])
+    return chamfer(glob[a], valid[a], glob[b], valid[b], *q).mean()
