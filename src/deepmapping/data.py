@@ -1,4 +1,4 @@
-"""The scan set every method works on: K organized 2D scans in their sensor frames."""
+"""The scan set every method works on: K scans (2D or 3D) in their sensor frames."""
 
 from __future__ import annotations
 
@@ -13,9 +13,16 @@ from deepmapping.errors import InputError
 class ScanSet:
     """K scans of N points each, in sensor frames.
 
-    points: (K, N, D) float32, D = 2 for 2D scans. Organized: point j of every scan is beam j.
+    points: (K, N, D) float32, D = 2 for 2D scans, 3 for 3D. The sensor sits at the origin of
+        its frame: free-space samples lie on the segment from the origin to each point.
+        2D: organized, point j of every scan is beam j. 3D: organized depth images when
+        ``grid_shape`` = (H, W) is set (point j = pixel (j // W, j % W)), else unorganized
+        clouds padded to a common N (padding is invalid).
     valid:  (K, N) bool; False for a beam without return (stored as the all-zero point).
-    gt_poses / init_poses: (K, 3) [x, y, theta] in the units of ``points``, or None.
+    gt_poses / init_poses: 2D (K, 3) [x, y, theta]; 3D (K, 4, 4) sensor-to-global matrices;
+        in the units of ``points``, or None.
+    grid_shape: (H, W) of organized 3D scans (depth images), None otherwise.
+    pose_dof: 3D only: 3 = planar poses [x, z, theta about the vertical y axis] (AVD), 6 = full.
     unit_scale: multiply a length in ``points`` units by this to report it in ``unit``
         (the authors' layout stores px/512, so unit_scale = 512 and unit = "px").
     ordered: True when scans are a temporal sequence (enables the Chamfer term).
@@ -30,6 +37,8 @@ class ScanSet:
     ordered: bool = True
     names: list[str] = field(default_factory=list)
     source: str = "<memory>"
+    grid_shape: tuple[int, int] | None = None
+    pose_dof: int = 3
 
     @property
     def num_scans(self) -> int:
@@ -38,6 +47,13 @@ class ScanSet:
     @property
     def dim(self) -> int:
         return int(self.points.shape[2])
+
+    @property
+    def is_3d(self) -> bool:
+        return self.dim == 3
+
+    def pose_shape(self) -> tuple[int, ...]:
+        return (4, 4) if self.is_3d else (3,)
 
     def validate(self) -> "ScanSet":
         """Check shapes and values; raise InputError naming the offending scan."""
@@ -54,11 +70,17 @@ class ScanSet:
                 raise InputError(f"{self.source}/{name}: contains NaN or inf coordinates")
             if not self.valid[k].any():
                 raise InputError(f"{self.source}/{name}: scan has no valid point")
+        if self.grid_shape is not None and int(np.prod(self.grid_shape)) != pts.shape[1]:
+            raise InputError(f"{self.source}: image size {self.grid_shape} does not match {pts.shape[1]} points per scan")
+        if self.pose_dof not in (3, 6) or (self.pose_dof == 6 and pts.shape[2] != 3):
+            raise InputError(f"{self.source}: pose_dof must be 3 or 6 (6 only for 3D scans), got {self.pose_dof}")
+        want = self.pose_shape()
         for label, poses in (("ground truth", self.gt_poses), ("initial poses", self.init_poses)):
             if poses is None:
                 continue
-            if poses.ndim != 2 or poses.shape[1] != 3:
-                raise InputError(f"{self.source}: {label} must be K x 3 [x y theta], got {poses.shape}")
+            if poses.ndim != 1 + len(want) or poses.shape[1:] != want:
+                what = "K x 4 x 4 matrices" if self.is_3d else "K x 3 [x y theta]"
+                raise InputError(f"{self.source}: {label} must be {what}, got {poses.shape}")
             if poses.shape[0] != pts.shape[0]:
                 raise InputError(
                     f"{self.source}: {poses.shape[0]} {label} for {pts.shape[0]} scans (counts differ)"
