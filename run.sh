@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # One-command setup + run:  ./run.sh demo   |   ./run.sh test   |   ./run.sh shell
 # Creates .venv (installing python3-venv with apt if this Debian/Ubuntu lacks it),
+# installs libusb-1.0-0 with apt when missing (Open3D's wheel links it),
 # installs torch==2.13.0 (CPU wheel where one is provided locally) and this package.
 set -euo pipefail
 cd "$(dirname "$0")"
@@ -19,7 +20,14 @@ apt_install() {  # system packages a fresh Debian/Ubuntu may lack
   $sudo apt-get update -qq && DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq "$@"
 }
 
+need_libusb() {  # Open3D (3D simulator and baselines) fails to import without it
+  [ "$(uname -s)" = Linux ] || return 1
+  ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' && return 1
+  return 0
+}
+
 setup() {
+  if need_libusb; then apt_install libusb-1.0-0; fi
   [ -f .venv/.installed ] && [ .venv/.installed -nt pyproject.toml ] && return
   local py; py=$(pick_python)
   rm -rf .venv

@@ -58,8 +58,16 @@ def test_ate_and_rotation_errors_are_invariant_to_a_global_rigid_motion():
     np.testing.assert_allclose(align_poses_3d(est, gt), gt, atol=1e-9)
     noisy = est.copy()
     noisy[3, :3, :3] = noisy[3, :3, :3] @ Rotation.from_euler("z", 10, degrees=True).as_matrix()
-    err = rotation_errors_deg(noisy, gt)
+    err = rotation_errors_deg(noisy, gt, tip=0)  # positions only: the rotated pose does not move the alignment
     assert err[3] == pytest.approx(10.0, abs=1e-6) and np.delete(err, 3).max() < 1e-6
     shifted = est.copy()
     shifted[:, :3, 3] += np.random.default_rng(8).normal(0, 0.1, (20, 3))
     assert 0.1 < ate_3d(shifted, gt) < 0.25  # 0.1 per axis: about 0.17 in 3D, less what alignment absorbs
+
+
+def test_rotation_errors_are_defined_when_positions_coincide():
+    """AVD turns in place: positions alone do not fix the alignment's rotation, axis tips do."""
+    gt = se3.from_rt(Rotation.from_euler("y", np.arange(6)[:, None] * 30.0, degrees=True).as_matrix(), np.zeros((6, 3)))
+    est = se3.compose(random_poses(1, 3)[0], gt)
+    np.testing.assert_allclose(rotation_errors_deg(est, gt), 0.0, atol=1e-6)
+    assert rotation_errors_deg(est, gt, tip=0).max() > 1.0  # what position-only alignment gives

@@ -20,25 +20,28 @@ from deepmapping.errors import ConfigError, InputError
 @dataclass
 class Result:
     method: str
-    poses: np.ndarray  # (K, 3) [x, y, theta] in the units of the input points
+    poses: np.ndarray  # 2D (K, 3) [x, y, theta]; 3D (K, 4, 4); in the units of the input points
     runtime_s: float
     config: Config
     init_poses: np.ndarray | None = None
     metrics: dict | None = None
     history: dict = field(default_factory=dict)
-    occupancy: Callable[[np.ndarray], np.ndarray] | None = None  # M-Net: xy (M, 2) -> p(occupied)
+    occupancy: Callable[[np.ndarray], np.ndarray] | None = None  # M-Net: (M, D) -> p(occupied)
 
 
 def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | Path | None = None,
              resume: bool = False, on_log: Callable[[dict], None] | None = None,
              on_epoch: Callable[[int, int, float], None] | None = None,
              on_icp_progress: Callable[[int, int], None] | None = None) -> Result:
-    """Register the scans with ``config.method`` (deepmapping, direct, icp-point, icp-plane)."""
-    cfg = config or load_config("default")
+    """Register the scans with ``config.method`` (deepmapping, direct, icp-point, icp-plane, multiway).
+
+    With no config: the "default" profile for 2D scans, "default-3d" for 3D ones.
+    """
     scans.validate()
+    cfg = config or load_config("default-3d" if scans.is_3d else "default")
     t0 = time.perf_counter()
-    if cfg.method in ("icp-point", "icp-plane"):
-        poses = incremental_icp(scans, cfg, cfg.method, on_icp_progress)
+    if cfg.method in BASELINES:
+        poses = baseline_poses(scans, cfg, cfg.method, None, on_icp_progress)
         return _finish(scans, cfg, poses, t0, init=None)
     saved = _load_checkpoint(checkpoint, cfg) if resume else None
     if saved is not None:
@@ -47,6 +50,27 @@ def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | 
     else:
         init = warm_start_poses(scans, cfg, on_icp_progress)
     return _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch)
+
+
+BASELINES = ("icp-point", "icp-plane", "multiway")
+
+
+def baseline_poses(scans: ScanSet, cfg: Config, method: str, init=None, progress=None) -> np.ndarray:
+    """Classic registration: incremental ICP (2D: ours; 3D: Open3D) or multiway registration (3D)."""
+    if not scans.is_3d:
+        if method == "multiway":
+            raise ConfigError("multiway registration is implemented for 3D scans only")
+        return incremental_icp(scans, cfg, method, progress)
+    clouds = [p[v].astype(np.float64) for p, v in zip(scans.points, scans.valid)]
+    opts = {"voxel_size": cfg.icp.voxel_size, "max_correspondence_distance": cfg.icp.max_correspondence_distance}
+    if method == "multiway":
+        from deepmapping.core.multiway import multiway_registration
+
+        return multiway_registration(clouds, init=init, edges=cfg.icp.multiway_edges, progress=progress, **opts)
+    from deepmapping.core.icp3d import incremental_icp_3d
+
+    return incremental_icp_3d(clouds, method=method.removeprefix("icp-"), init=init,
+                              max_iterations=cfg.icp.max_iterations, progress=progress, **opts)
 
 
 def incremental_icp(scans: ScanSet, cfg: Config, method: str, progress=None) -> np.ndarray:
@@ -61,20 +85,28 @@ def warm_start_poses(scans: ScanSet, cfg: Config, progress=None) -> np.ndarray:
     """Initial poses (§3.5): identity (cold start), incremental ICP, or a given pose file."""
     ws = cfg.warm_start
     if ws.method == "none":
-        return np.zeros((scans.num_scans, 3))
+        return np.tile(np.eye(4), (scans.num_scans, 1, 1)) if scans.is_3d else np.zeros((scans.num_scans, 3))
     if ws.method == "file":
         if ws.path is not None:
-            from deepmapping.io.poses import read_poses
-
-            init = read_poses(ws.path)
-            if init.shape != (scans.num_scans, 3):
+            init = _read_init(ws.path, scans.is_3d)
+            if init.shape != (scans.num_scans, *scans.pose_shape()):
                 raise InputError(f"{ws.path}: {init.shape[0]} initial poses for {scans.num_scans} scans (counts differ)")
         elif scans.init_poses is not None:
             init = scans.init_poses
         else:
             raise ConfigError("warm_start.method is 'file' but no initial pose file was given")
         return np.asarray(init, dtype=np.float64)
-    return incremental_icp(scans, cfg, ws.method, progress)
+    return baseline_poses(scans, cfg, ws.method, scans.init_poses, progress)
+
+
+def _read_init(path, is_3d: bool) -> np.ndarray:
+    if is_3d:
+        from deepmapping.io.poses3d import read_poses_3d
+
+        return read_poses_3d(path)
+    from deepmapping.io.poses import read_poses
+
+    return read_poses(path)
 
 
 def _load_checkpoint(checkpoint, cfg: Config) -> dict | None:
@@ -116,7 +148,8 @@ def _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch) -> Result:
     frame = Frame.from_scans(scans.points, scans.valid, init)
     pts = torch.as_tensor(scans.points / frame.scale, dtype=torch.float32, device=device)
     valid = torch.as_tensor(scans.valid, device=device)
-    model = DeepMappingModel(cfg, pts, torch.as_tensor(frame.to_norm(init), dtype=torch.float32, device=device))
+    model = DeepMappingModel(cfg, pts, torch.as_tensor(frame.to_norm(init), dtype=torch.float32, device=device),
+                             valid=valid, grid_shape=scans.grid_shape, pose_dof=scans.pose_dof)
     model.to(device)
     if cfg.method == "direct":
         model.make_direct()
@@ -124,8 +157,10 @@ def _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch) -> Result:
     def evaluate(poses_norm: np.ndarray) -> float | None:
         if scans.gt_poses is None:
             return None
-        from deepmapping.core.metrics import ate
-
+        if scans.is_3d:
+            from deepmapping.core.metrics3d import ate_3d as ate
+        else:
+            from deepmapping.core.metrics import ate
         return ate(frame.from_norm(poses_norm), scans.gt_poses) * scans.unit_scale
 
     trainer = Trainer(cfg, model, valid, scans.ordered, evaluate)
@@ -155,10 +190,17 @@ def _finish(scans: ScanSet, cfg: Config, poses: np.ndarray, t0: float, init) -> 
     runtime = time.perf_counter() - t0
     metrics = None
     if scans.gt_poses is not None:
-        from deepmapping.core.metrics import evaluate
-
-        metrics = evaluate(poses, scans.gt_poses, scans.points, scans.valid, unit_scale=scans.unit_scale,
-                           success_threshold=cfg.eval.success_threshold)
+        metrics = evaluate_poses(scans, poses, cfg.eval.success_threshold)
         metrics["runtime_s"] = runtime
-        metrics["unit"] = scans.unit
     return Result(method=cfg.method, poses=poses, runtime_s=runtime, config=cfg, init_poses=init, metrics=metrics)
+
+
+def evaluate_poses(scans: ScanSet, poses: np.ndarray, success_threshold: float | None = None) -> dict:
+    """The paper's metrics (ATE, point distance, success; rotation errors) against scans.gt_poses."""
+    if scans.is_3d:
+        from deepmapping.core.metrics3d import evaluate_3d as evaluate
+    else:
+        from deepmapping.core.metrics import evaluate
+    metrics = evaluate(poses, scans.gt_poses, scans.points, scans.valid, unit_scale=scans.unit_scale,
+                       success_threshold=success_threshold)
+    return metrics | {"unit": scans.unit}

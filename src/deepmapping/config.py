@@ -15,8 +15,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from deepmapping.errors import ConfigError
 
-Method = Literal["deepmapping", "direct", "icp-point", "icp-plane"]
-WarmStart = Literal["none", "icp-point", "icp-plane", "file"]
+Method = Literal["deepmapping", "direct", "icp-point", "icp-plane", "multiway"]
+WarmStart = Literal["none", "icp-point", "icp-plane", "multiway", "file"]
 
 
 class _Section(BaseModel):
@@ -26,9 +26,13 @@ class _Section(BaseModel):
 class LNetConfig(_Section):
     """L-Net f_theta: 1D atrous CNN over the organized scan, global max-pool, MLP -> (tx, ty, theta)."""
 
+    # "auto": a CNN for organized scans (2D scans, depth images), PointNet for unorganized clouds
+    extractor: Literal["auto", "cnn", "pointnet"] = "auto"
     conv_channels: list[int] = [64, 128, 1024]
     kernel_size: int = 3
     dilation: int = 2
+    stride: int = 1  # convolution stride (1 in the paper; >1 makes depth-image L-Nets cheap)
+    point_channels: list[int] = [64, 128, 256, 1024]  # PointNet's shared MLP (supplementary A)
     fc_channels: list[int] = [512, 256]
     zero_init_output: bool = False  # start as identity correction when warm-started
     # Standardize the pooled and hidden features with statistics fixed by one pass over all
@@ -80,6 +84,8 @@ class OptimConfig(_Section):
 class ICPConfig(_Section):
     max_iterations: int = 50
     max_correspondence_distance: float | None = None  # None = adaptive to the scan scale
+    voxel_size: float | None = None  # 3D: downsampling voxel before ICP / multiway (None = adaptive)
+    multiway_edges: str = "all"  # 3D multiway registration: "all" pairs or "window:N"
 
 
 class WarmStartConfig(_Section):
@@ -88,7 +94,10 @@ class WarmStartConfig(_Section):
 
 
 class EvalConfig(_Section):
-    success_threshold: float = 20.0  # ATE below this (in ground-truth units, px for 2D) = success
+    # ATE below this (in reporting units: px for 2D, mm for AVD-like 3D) = success.
+    # None = 20 px for 2D (supplementary B), 450 mm for 3D (supplementary C).
+    success_threshold: float | None = None
+    voxel_size: float | None = None  # 3D occupancy export (points' units); None = 1/64 of the map's extent
 
 
 class Config(_Section):
@@ -146,6 +155,24 @@ PROFILES: dict[str, dict] = {
         "mnet": {"kind": "fourier", "hidden": [128, 128, 128], "fourier_features": 16},
         "loss": {"free_samples": 4, "free_sampling": "stratified", "beams_per_scan": 64},
         "optim": {"batch_size": 64, "epochs": 250, "lr_final_factor": 0.05, "eval_every": 10},
+    },
+    # §4.2 (AVD) exactly: C(64)-C(128)-C(256)-C(1024)-AM(1)-FC(512)-FC(256)-FC(3) on depth images
+    # (PointNet FC(64)-...-FC(1024) on clouds), the §4.1 M-Net with a 3-D input, 35 free-space
+    # samples per ray, lambda = 0.1, batch 8, 3000 epochs, Adam lr 1e-3; no warm start.
+    "paper-3d": {
+        "lnet": {"conv_channels": [64, 128, 256, 1024]},
+        "loss": {"free_samples": 35, "chamfer_weight": 0.1},
+        "optim": {"batch_size": 8},
+        "warm_start": {"method": "none"},
+    },
+    # Fast 3D path (benchmarks/avd_3d.py measures it).
+    "default-3d": {
+        "lnet": {"conv_channels": [32, 64, 128], "stride": 2, "fc_channels": [256, 128], "zero_init_output": True,
+                 "feature_norm": True, "lr_factor": 0.1, "pose_input_freqs": 8, "point_channels": [64, 128, 256]},
+        "mnet": {"kind": "fourier", "hidden": [128, 128, 128], "fourier_features": 16},
+        "loss": {"free_samples": 8, "free_sampling": "stratified", "beams_per_scan": 1024, "chamfer_weight": 0.1},
+        "optim": {"batch_size": 16, "epochs": 300, "lr_final_factor": 0.05, "eval_every": 10},
+        "warm_start": {"method": "multiway"},
     },
 }
 

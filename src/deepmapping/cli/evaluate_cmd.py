@@ -10,7 +10,7 @@ from deepmapping.errors import InputError
 
 def run_evaluate(run_dir: Path, gt: Path | None = None) -> dict:
     from deepmapping.config import load_config
-    from deepmapping.core.metrics import evaluate
+    from deepmapping.api import evaluate_poses
     from deepmapping.io.loaders import load_scans
     from deepmapping.io.poses import read_poses_npy
     from deepmapping.tools.run_dir import write_json
@@ -27,12 +27,16 @@ def run_evaluate(run_dir: Path, gt: Path | None = None) -> dict:
     scans = load_scans(info["data"], fmt=info.get("format"), gt_path=gt or info.get("gt"))
     if scans.gt_poses is None:
         raise InputError(f"{info['data']}: no ground truth known; pass --gt FILE")
-    poses = read_poses_npy(run_dir / "poses.npy")
-    if poses.shape != (scans.num_scans, 3):
+    if scans.is_3d:
+        from deepmapping.io.poses3d import read_poses_3d
+
+        poses = read_poses_3d(run_dir / "poses.npy")
+    else:
+        poses = read_poses_npy(run_dir / "poses.npy")
+    if poses.shape != (scans.num_scans, *scans.pose_shape()):
         raise InputError(f"{run_dir / 'poses.npy'}: {poses.shape[0]} poses for {scans.num_scans} scans")
     cfg = load_config("default", run_dir / "config.yaml") if (run_dir / "config.yaml").exists() else load_config()
-    metrics = evaluate(poses, scans.gt_poses, scans.points, scans.valid, unit_scale=scans.unit_scale,
-                       success_threshold=cfg.eval.success_threshold)
-    metrics |= {"unit": scans.unit, "method": info.get("method", "?"), "runtime_s": info.get("runtime_s")}
+    metrics = evaluate_poses(scans, poses, cfg.eval.success_threshold)
+    metrics |= {"method": info.get("method", "?"), "runtime_s": info.get("runtime_s")}
     write_json(run_dir / "metrics.json", metrics)
     return metrics

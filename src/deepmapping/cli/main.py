@@ -10,16 +10,24 @@ import typer
 from deepmapping.errors import DeepMappingError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
-                  help="DeepMapping: register many 2D laser scans into one map by training an L-Net and an M-Net.")
+                  help="DeepMapping: register many 2D laser scans or 3D point clouds into one map by training an "
+                       "L-Net and an M-Net.")
 
-METHODS = "deepmapping | direct | icp-point | icp-plane"
+METHODS = "deepmapping | direct | icp-point | icp-plane | multiway (3D)"
 
 
 @app.command(epilog="Examples:\n\n  deepmapping simulate data/traj0 --poses 256 --seed 3\n\n"
                     "  deepmapping simulate data/custom --map mymap.png --poses 128\n\n"
-                    "  deepmapping simulate data/paper --paper-dataset")
+                    "  deepmapping simulate data/paper --paper-dataset\n\n"
+                    "  deepmapping simulate data/avd --kind rgbd --trajectories 10 --frames 16\n\n"
+                    "  deepmapping simulate data/lidar --kind lidar --lidar-beams 32")
 def simulate(
-    out: Path = typer.Argument(..., help="Folder to write (authors' layout: 000.pcd…, gt_pose.mat, map.png)."),
+    out: Path = typer.Argument(..., help="Folder to write (2D: authors' layout 000.pcd…, gt_pose.mat, map.png; "
+                                         "3D: traj_000/, traj_001/, …)."),
+    kind: str = typer.Option("2d", help="2d (laser, §4.1) | rgbd (AVD-like depth images, §4.2) | lidar (3D, 6-DoF)."),
+    trajectories: int = typer.Option(10, help="3D: number of trajectories."),
+    frames: int = typer.Option(16, help="3D: frames per trajectory (AVD: 8 or 16)."),
+    lidar_beams: int = typer.Option(16, help="lidar: 16, 32 or 64 beams."),
     poses: int = typer.Option(256, help="Number of poses (scans) on the trajectory."),
     beams: int = typer.Option(256, help="Beams per 360° scan."),
     seed: int = typer.Option(0, help="Trajectory seed."),
@@ -28,10 +36,16 @@ def simulate(
     max_range: Optional[float] = typer.Option(None, help="Maximum range in px (default unlimited)."),
     rotation: float = typer.Option(10.0, help="Max rotation per step (deg)."),
     step: float = typer.Option(8.16, help="Mean translation per step (px)."),
-    noise: float = typer.Option(0.0, help="Range noise std (px); 0 = ideal scanner as in the paper."),
+    noise: float = typer.Option(0.0, help="Range noise std (2D: px; 3D: m); 0 = ideal scanner as in the paper."),
     paper_dataset: bool = typer.Option(False, "--paper-dataset", help="Write the paper's 75 trajectories on 3 maps."),
 ):
-    """Simulate a 2D lidar trajectory in a 1024×1024 occupancy image (paper §4.1)."""
+    """Simulate scans with ground truth: a 2D lidar in a 1024×1024 occupancy image (§4.1), or 3D
+    indoor scenes seen by an AVD-like depth camera (§4.2) or a spinning LiDAR."""
+    if kind in ("rgbd", "lidar"):
+        _simulate_3d(out, kind, trajectories, frames, seed, lidar_beams, noise)
+        return
+    if kind != "2d":
+        raise typer.BadParameter(f"--kind must be 2d, rgbd or lidar, got {kind!r}")
     from deepmapping.sim import dataset, maps
 
     if paper_dataset:
@@ -45,6 +59,19 @@ def simulate(
     typer.echo(f"wrote {poses} scans to {out} (picture: {out / 'map.png'})")
 
 
+def _simulate_3d(out: Path, kind: str, trajectories: int, frames: int, seed: int, beams: int, noise: float) -> None:
+    if kind == "rgbd":
+        from deepmapping.sim.rgbd import write_rgbd_dataset
+
+        write_rgbd_dataset(out, num_trajectories=trajectories, frames=frames, seed=seed, noise_std_m=noise)
+    else:
+        from deepmapping.sim.lidar import write_lidar_dataset
+
+        write_lidar_dataset(out, num_trajectories=trajectories, frames=frames, seed=seed, beams=beams,
+                            noise_std_m=noise)
+    typer.echo(f"wrote {trajectories} {kind} trajectories of {frames} frames under {out}")
+
+
 @app.command(epilog="Examples:\n\n  deepmapping register data/traj0 --out runs/dm\n\n"
                     "  deepmapping register data/traj0 --method icp-plane --out runs/icp\n\n"
                     "  deepmapping register data/traj0 --profile paper --set optim.epochs=500\n\n"
@@ -53,11 +80,12 @@ def register(
     data: Path = typer.Argument(..., help="Scan folder (authors' layout, or .pcd/.ply/.npy scans)."),
     method: str = typer.Option("deepmapping", help=METHODS),
     out: Optional[Path] = typer.Option(None, help="Run folder (default: runs/<timestamp>_<method>)."),
-    profile: str = typer.Option("default", help="default (fast) | paper (§4.1 exactly)."),
+    profile: str = typer.Option("default", help="default (fast) | paper (§4.1 / §4.2 exactly); 3D data "
+                                "gets the -3d variant."),
     config: Optional[Path] = typer.Option(None, help="YAML/JSON config file (sections as in config.yaml)."),
     set: Optional[List[str]] = typer.Option(None, "--set", help="Override a setting: --set optim.epochs=200."),
     epochs: Optional[int] = typer.Option(None, help="Number of epochs."),
-    warm_start: Optional[str] = typer.Option(None, help="icp-plane | icp-point | none."),
+    warm_start: Optional[str] = typer.Option(None, help="icp-plane | icp-point | multiway (3D) | none."),
     init: Optional[Path] = typer.Option(None, help="Initial poses file (warm start), in the scans' units."),
     gt: Optional[Path] = typer.Option(None, help="Ground-truth poses (overrides the folder's own)."),
     format: Optional[str] = typer.Option(None, "--format", help="Loader name (default: picked from the path)."),
@@ -78,12 +106,14 @@ def register(
             raise typer.BadParameter("--resume needs --out RUN_DIR")
         cfg = register_cmd.resume_config(out)
     else:
-        cfg = register_cmd.build_config(profile, config, method, epochs, warm_start, init, device, seed,
-                                        parse_sets(set))
-    out = out or default_run_dir(cfg.method)
+        sets = parse_sets(set)
+        cfg = lambda is_3d: register_cmd.build_config(profile, config, method, epochs, warm_start, init,  # noqa: E731
+                                                      device, seed, sets, is_3d)
+        cfg(False)  # a bad setting fails before any data is read
+    out = out or default_run_dir(method)
     scans, result = register_cmd.run_register(data, out, cfg, format, gt, resume, plots=not no_plots)
     if result.metrics:
-        console.print(metrics_table({cfg.method: result.metrics}))
+        console.print(metrics_table({result.method: result.metrics}))
     typer.echo(f"results in {out}")
 
 

@@ -8,8 +8,12 @@ from deepmapping.cli.common import fail
 from deepmapping.cli.progress import console, progress_bar
 
 
-def build_config(profile, config_file, method, epochs, warm_start, init, device, seed, sets):
-    from deepmapping.config import load_config
+def build_config(profile, config_file, method, epochs, warm_start, init, device, seed, sets, is_3d=False):
+    """The effective config; 3D data gets the 3D variant of the profile (default -> default-3d)."""
+    from deepmapping.config import PROFILES, load_config
+
+    if is_3d and f"{profile}-3d" in PROFILES:
+        profile = f"{profile}-3d"
 
     overrides = dict(sets)
     overrides["method"] = method
@@ -35,12 +39,15 @@ def resume_config(out: Path):
 
 
 def run_register(data: Path, out: Path, cfg, fmt, gt, resume: bool, plots: bool = True, quiet: bool = False):
+    """cfg: a Config, or a function is_3d -> Config (the profile depends on the data)."""
     from deepmapping.io.loaders import load_scans
 
     # every input problem is raised before out/ exists (the --init file and the device included),
     # and before torch is imported, so bad input fails fast
-    init = cfg.warm_start.path if cfg.warm_start.method == "file" and not resume else None
+    cfg0 = cfg(False) if callable(cfg) else cfg
+    init = cfg0.warm_start.path if cfg0.warm_start.method == "file" and not resume else None
     scans = load_scans(data, fmt=fmt, gt_path=gt, init_path=init)
+    cfg = cfg(scans.is_3d) if callable(cfg) else cfg
     from deepmapping.api import register, resolve_device
     from deepmapping.solver.trainer import Interrupted
     from deepmapping.tools.run_dir import write_config, write_json, write_run

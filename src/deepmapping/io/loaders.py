@@ -1,7 +1,7 @@
 """Dataloaders: turn a folder of scans (+ optional poses) into a validated ScanSet.
 
 Formats live in a registry so later formats (KITTI, CARMEN, 3DTK, ...) only need
-``register_loader(name, loader, detector)``:
+``register_loader(name, loader, detector)`` (3D: "rgbd", "lidar", "bunny", "3dtk" at the end):
 
 - ``"authors"``: the DeepMapping authors' layout, a folder with ``000.pcd, 001.pcd, ...``
   and ``gt_pose.mat`` (key ``pose``, rows ``[x_px, y_px, theta]``). Points are px/512;
@@ -278,3 +278,19 @@ def load_scans(
         Path(gt_path) if gt_path is not None else None,
         Path(init_path) if init_path is not None else None,
     )
+
+
+# -- 3D formats (modules imported on use, so `import deepmapping` stays light) -------------------
+def _lazy(module: str, func: str) -> Callable:
+    def call(*args, **kwargs):
+        import importlib
+
+        return getattr(importlib.import_module(f"deepmapping.io.{module}"), func)(*args, **kwargs)
+
+    return call
+
+
+register_loader("rgbd", _lazy("rgbd", "load_rgbd"), _lazy("rgbd", "is_rgbd_folder"))
+register_loader("lidar", _lazy("lidar", "load_lidar"), _lazy("lidar", "is_lidar_folder"))
+register_loader("bunny", _lazy("bunny", "load_bunny"), _lazy("bunny", "is_bunny_folder"))
+register_loader("3dtk", _lazy("threedtk", "load_3dtk"), _lazy("threedtk", "is_3dtk_folder"))

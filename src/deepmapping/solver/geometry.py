@@ -1,8 +1,16 @@
-"""SE(2) in torch (differentiable): the same convention as deepmapping.core.se2."""
+"""Poses in torch (differentiable), the same conventions as deepmapping.core.se2 / core.se3.
+
+2D poses are (..., 3) [x, y, theta]. 3D poses are (..., 4, 4) sensor-to-global matrices; the
+L-Net's 3D output is a correction, either planar [dx, dz, dtheta] about the vertical y axis
+(AVD, 3-DoF) or [dt (3), d6 (6)] with the rotation in Zhou et al.'s continuous 6D form
+(6-DoF; see docs/method.md for why 6D rather than quaternions).
+"""
 
 from __future__ import annotations
 
 import torch
+
+IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
 
 
 def compose(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -14,7 +22,11 @@ def compose(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 def transform(poses: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-    """Move sensor-frame points (B, ..., 2) to the global frame with poses (B, 3)."""
+    """Move sensor-frame points (B, ..., D) to the global frame with poses (B, 3) or (B, 4, 4)."""
+    if poses.dim() == 3:
+        rot, t = poses[:, :3, :3], poses[:, :3, 3]
+        flat = points.reshape(points.shape[0], -1, 3)
+        return (flat @ rot.transpose(1, 2) + t[:, None, :]).reshape(points.shape)
     shape = (poses.shape[0],) + (1,) * (points.dim() - 2)
     c = torch.cos(poses[:, 2]).view(shape)
     s = torch.sin(poses[:, 2]).view(shape)
@@ -22,3 +34,45 @@ def transform(poses: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     gx = c * x - s * y + poses[:, 0].view(shape)
     gy = s * x + c * y + poses[:, 1].view(shape)
     return torch.stack([gx, gy], dim=-1)
+
+
+def _matrix(rot: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    bottom = torch.zeros(rot.shape[:-2] + (1, 4), dtype=rot.dtype, device=rot.device)
+    bottom[..., 0, 3] = 1.0
+    return torch.cat([torch.cat([rot, t[..., :, None]], dim=-1), bottom], dim=-2)
+
+
+def planar_matrix(p: torch.Tensor) -> torch.Tensor:
+    """(B, 3) [x, z, theta] (theta about the vertical y axis) -> (B, 4, 4)."""
+    c, s = torch.cos(p[:, 2]), torch.sin(p[:, 2])
+    zero, one = torch.zeros_like(c), torch.ones_like(c)
+    rot = torch.stack([c, zero, s, zero, one, zero, -s, zero, c], dim=-1).view(-1, 3, 3)
+    return _matrix(rot, torch.stack([p[:, 0], zero, p[:, 1]], dim=-1))
+
+
+def rotation_from_6d(six: torch.Tensor) -> torch.Tensor:
+    """(B, 6) two columns -> rotation (B, 3, 3) by Gram-Schmidt; the third column is their cross product."""
+    a, b = six[:, :3], six[:, 3:]
+    c1 = a / a.norm(dim=-1, keepdim=True).clamp(min=1e-8)
+    b = b - (c1 * b).sum(-1, keepdim=True) * c1
+    c2 = b / b.norm(dim=-1, keepdim=True).clamp(min=1e-8)
+    return torch.stack([c1, c2, torch.cross(c1, c2, dim=-1)], dim=-1)
+
+
+def six_dof_matrix(v: torch.Tensor) -> torch.Tensor:
+    """(B, 9) [t (3), delta 6D (6)] -> (B, 4, 4); v = 0 is the identity (the 6D part is a residual)."""
+    six = v[:, 3:] + torch.tensor(IDENTITY_6D, dtype=v.dtype, device=v.device)
+    return _matrix(rotation_from_6d(six), v[:, :3])
+
+
+def correction_matrix(v: torch.Tensor) -> torch.Tensor:
+    """An L-Net 3D output (B, 3) planar or (B, 9) 6-DoF -> (B, 4, 4)."""
+    return planar_matrix(v) if v.shape[1] == 3 else six_dof_matrix(v)
+
+
+def pose_features(init_poses: torch.Tensor) -> torch.Tensor:
+    """What the L-Net sees of a warm-start pose: 2D (x, y, cos, sin); 3D (t, first two columns of R)."""
+    if init_poses.dim() == 3:
+        return torch.cat([init_poses[:, :3, 3], init_poses[:, :3, :2].transpose(1, 2).reshape(-1, 6)], dim=1)
+    th = init_poses[:, 2:]
+    return torch.cat([init_poses[:, :2], torch.cos(th), torch.sin(th)], dim=1)

@@ -6,18 +6,35 @@ import torch
 from torch import nn
 
 from deepmapping.config import Config
-from deepmapping.solver.geometry import compose
+from deepmapping.solver.geometry import compose, correction_matrix
 from deepmapping.solver.networks import LNet, MNet
 
 
-class DeepMappingModel(nn.Module):
-    """T_i = T_init_i ∘ f_theta(S_i) (warm start, §3.5); T_init = identity for a cold start."""
+def fill_invalid(scans: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """Unorganized clouds for PointNet: each invalid (padding) point becomes a copy of a valid
+    point of the same scan, so the max-pool sees exactly the scan's points."""
+    first = valid.float().argmax(dim=1)  # index of a valid point per scan
+    anchor = scans[torch.arange(scans.shape[0], device=scans.device), first]
+    return torch.where(valid[..., None], scans, anchor[:, None, :])
 
-    def __init__(self, cfg: Config, scans: torch.Tensor, init_poses: torch.Tensor):
+
+class DeepMappingModel(nn.Module):
+    """T_i = T_init_i ∘ f_theta(S_i) (warm start, §3.5); T_init = identity for a cold start.
+
+    2D poses are (K, 3); 3D poses (K, 4, 4) with a planar (3-DoF) or 6-DoF correction.
+    """
+
+    def __init__(self, cfg: Config, scans: torch.Tensor, init_poses: torch.Tensor,
+                 valid: torch.Tensor | None = None, grid_shape: tuple[int, int] | None = None, pose_dof: int = 3):
         super().__init__()
-        self.lnet = LNet(cfg.lnet, in_dim=scans.shape[2])
-        self.mnet = MNet(cfg.mnet, in_dim=scans.shape[2])
+        dim = scans.shape[2]
+        self.is_3d = init_poses.dim() == 3
+        out_dim = 9 if (self.is_3d and pose_dof == 6) else 3
+        self.lnet = LNet(cfg.lnet, in_dim=dim, out_dim=out_dim, grid_shape=grid_shape)
+        self.mnet = MNet(cfg.mnet, in_dim=dim)
         self.register_buffer("scans", scans)
+        lnet_in = scans if (grid_shape is not None or dim == 2 or valid is None) else fill_invalid(scans, valid)
+        self.register_buffer("lnet_scans", lnet_in)
         self.register_buffer("init_poses", init_poses)
         self.direct_poses: nn.Parameter | None = None
         self.mnet_lr_factor = cfg.mnet.lr_factor
@@ -25,12 +42,17 @@ class DeepMappingModel(nn.Module):
         if cfg.lnet.feature_norm:  # statistics from (an even spread of at most 512 of) all scans
             k = scans.shape[0]
             spread = torch.linspace(0, k - 1, min(k, 512), device=scans.device).long()
-            self.lnet.calibrate(scans[spread], init_poses[spread])
+            self.lnet.calibrate(lnet_in[spread], init_poses[spread])
+
+    def _with_correction(self, init: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
+        return init @ correction_matrix(out) if self.is_3d else compose(init, out)
 
     def poses(self, idx: torch.Tensor) -> torch.Tensor:
         if self.direct_poses is not None:
+            if self.is_3d:  # 3D direct parameters are the corrections themselves
+                return self._with_correction(self.init_poses[idx], self.direct_poses[idx])
             return self.direct_poses[idx]
-        return compose(self.init_poses[idx], self.lnet(self.scans[idx], self.init_poses[idx]))
+        return self._with_correction(self.init_poses[idx], self.lnet(self.lnet_scans[idx], self.init_poses[idx]))
 
     @torch.no_grad()
     def all_poses(self, chunk: int = 256) -> torch.Tensor:
@@ -38,10 +60,17 @@ class DeepMappingModel(nn.Module):
         idx = torch.arange(k, device=self.scans.device)
         return torch.cat([self.poses(idx[i : i + chunk]) for i in range(0, k, chunk)])
 
+    @torch.no_grad()
+    def _all_corrections(self, chunk: int = 256) -> torch.Tensor:
+        k = self.scans.shape[0]
+        return torch.cat([self.lnet(self.lnet_scans[i : i + chunk], self.init_poses[i : i + chunk])
+                          for i in range(0, k, chunk)])
+
     def make_direct(self) -> None:
         """Direct optimization baseline: drop the L-Net from the problem and optimize the poses
         themselves, starting from one forward pass of the L-Net (as the paper does)."""
-        self.direct_poses = nn.Parameter(self.all_poses().clone())
+        start = self._all_corrections() if self.is_3d else self.all_poses()
+        self.direct_poses = nn.Parameter(start.clone())
 
     def param_groups(self) -> list[dict]:
         """Two optimizer groups: what produces the poses (L-Net or direct poses), and the M-Net."""

@@ -8,6 +8,7 @@ import torch
 from torch import nn
 
 from deepmapping.config import LNetConfig, MNetConfig
+from deepmapping.solver.geometry import pose_features
 
 
 class Standardize(nn.Module):
@@ -30,26 +31,53 @@ class Standardize(nn.Module):
         return (x - self.mean) / self.std
 
 
-class LNet(nn.Module):
-    """L-Net for organized 2D scans: C(64)-C(128)-C(1024)-M(1024)-FC(512)-FC(256)-FC(3) in the paper.
+def feature_extractor(cfg: LNetConfig, in_dim: int, grid_shape: tuple[int, int] | None) -> tuple[nn.Module, int]:
+    """The L-Net's latent feature module (§3.3): a CNN over organized scans, PointNet otherwise.
 
-    C(n): 1D atrous convolution over the beam order (kernel 3, dilation 2), ReLU.
-    M: global max-pool over beams. FC: fully connected, ReLU except the output (tx, ty, theta).
+    2D scans: 1D atrous convolutions over the beam order. Depth images (grid_shape set): 2D
+    atrous convolutions. Unorganized clouds (or ``extractor="pointnet"``): a shared per-point
+    MLP (PointNet without its input/feature transforms). Each layer is followed by a ReLU;
+    the global max-pool comes after (in LNet).
+    """
+    kind = cfg.extractor
+    if kind == "auto":
+        kind = "cnn" if (in_dim == 2 or grid_shape is not None) else "pointnet"
+    layers: list[nn.Module] = []
+    prev = in_dim
+    if kind == "pointnet":
+        for ch in cfg.point_channels:
+            layers += [nn.Conv1d(prev, ch, 1), nn.ReLU()]
+            prev = ch
+        return nn.Sequential(*layers), prev
+    if in_dim == 3 and grid_shape is None:
+        raise ValueError("the CNN L-Net needs organized scans (depth images); use extractor='pointnet'")
+    conv = nn.Conv1d if in_dim == 2 else nn.Conv2d
+    pad = cfg.dilation * (cfg.kernel_size - 1) // 2
+    for ch in cfg.conv_channels:
+        layers += [conv(prev, ch, cfg.kernel_size, stride=cfg.stride, dilation=cfg.dilation, padding=pad), nn.ReLU()]
+        prev = ch
+    return nn.Sequential(*layers), prev
+
+
+class LNet(nn.Module):
+    """L-Net f_theta: latent features of one scan, global max-pool, MLP -> the scan's pose.
+
+    2D (§4.1): C(64)-C(128)-C(1024)-M(1024)-FC(512)-FC(256)-FC(3) -> (tx, ty, theta).
+    3D (§4.2): C(64)-C(128)-C(256)-C(1024)-AM(1)-FC(512)-FC(256)-FC(3) -> (tx, tz, theta) for
+    depth images, or PointNet FC(64)-FC(128)-FC(256)-FC(1024)-max-FC(512)-FC(256) (supp. A),
+    with 9 outputs (translation + 6D rotation) for 6-DoF poses.
     Invalid beams enter as the zero point, as in the authors' data.
     """
 
-    def __init__(self, cfg: LNetConfig, in_dim: int = 2, out_dim: int = 3):
+    def __init__(self, cfg: LNetConfig, in_dim: int = 2, out_dim: int = 3,
+                 grid_shape: tuple[int, int] | None = None):
         super().__init__()
-        layers: list[nn.Module] = []
-        prev = in_dim
-        pad = cfg.dilation * (cfg.kernel_size - 1) // 2
-        for ch in cfg.conv_channels:
-            layers += [nn.Conv1d(prev, ch, cfg.kernel_size, dilation=cfg.dilation, padding=pad), nn.ReLU()]
-            prev = ch
-        self.features = nn.Sequential(*layers)
+        self.grid_shape = grid_shape
+        self.features, prev = feature_extractor(cfg, in_dim, grid_shape)
         self.pose_encoding: FourierEncoding | None = None
         if cfg.pose_input_freqs:
-            self.pose_encoding = FourierEncoding(4, cfg.pose_input_freqs, 2.0 ** (cfg.pose_input_freqs - 1))
+            self.pose_encoding = FourierEncoding(4 if in_dim == 2 else 9, cfg.pose_input_freqs,
+                                                 2.0 ** (cfg.pose_input_freqs - 1))
             prev += self.pose_encoding.out_dim
         mlp: list[nn.Module] = [Standardize(prev)] if cfg.feature_norm else []
         for ch in cfg.fc_channels:
@@ -74,15 +102,15 @@ class LNet(nn.Module):
                 m.calibrating = False
 
     def forward(self, scans: torch.Tensor, init_poses: torch.Tensor | None = None) -> torch.Tensor:
-        """scans (B, N, D) in sensor frames -> poses (B, 3) = (tx, ty, theta).
+        """scans (B, N, D) in sensor frames -> pose outputs (B, out_dim).
 
-        init_poses (B, 3): the warm-start poses, used only when pose_input_freqs > 0."""
-        feat = self.features(scans.transpose(1, 2))  # (B, C, N)
-        pooled = feat.amax(dim=2)  # M(n): global max-pool over beams
+        init_poses (B, 3) or (B, 4, 4): the warm-start poses, used only when pose_input_freqs > 0."""
+        x = scans.transpose(1, 2)  # (B, D, N)
+        if self.grid_shape is not None and isinstance(self.features[0], nn.Conv2d):
+            x = x.reshape(x.shape[0], x.shape[1], *self.grid_shape)
+        pooled = self.features(x).flatten(2).amax(dim=2)  # M / AM(1): global max-pool
         if self.pose_encoding is not None:
-            th = init_poses[:, 2:]
-            pose = torch.cat([init_poses[:, :2], torch.cos(th), torch.sin(th)], dim=1)
-            pooled = torch.cat([pooled, self.pose_encoding(pose)], dim=1)
+            pooled = torch.cat([pooled, self.pose_encoding(pose_features(init_poses))], dim=1)
         return self.out(self.head(pooled))
 
 

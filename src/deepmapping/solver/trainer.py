@@ -18,6 +18,10 @@ from deepmapping.solver.model import DeepMappingModel
 from deepmapping.solver.sampling import free_space_fractions, free_space_points, near_hit_fractions, select_beams
 
 
+def _positions(poses: np.ndarray) -> np.ndarray:
+    return poses[:, :3, 3] if poses.ndim == 3 else poses[:, :2]
+
+
 class Interrupted(Exception):
     """Ctrl-C during training: a checkpoint was written to `path`."""
 
@@ -127,7 +131,7 @@ class Trainer:
                     mean = sums / len(batches)
                     poses = self._log(st.step, *mean, st.elapsed_s, on_log)
                     if prev_poses is not None:
-                        moved = np.abs(poses[:, :2] - prev_poses[:, :2]).max()
+                        moved = np.abs(_positions(poses) - _positions(prev_poses)).max()
                         prev_poses = poses
                         last = last or moved < cfg.early_stop_tol
                 if checkpoint_path and (last or time.perf_counter() - last_ckpt > cfg.checkpoint_every_s):

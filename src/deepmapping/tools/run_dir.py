@@ -48,6 +48,10 @@ def write_config(out: Path, result_config) -> None:
 
 def write_run(out: Path, scans: ScanSet, result: Result, data_info: dict, plots: bool = True) -> list[Path]:
     """Write every output of a finished run; returns the files written."""
+    if scans.is_3d:
+        from deepmapping.tools.run_dir3d import write_run_3d
+
+        return write_run_3d(out, scans, result, data_info, plots)
     from deepmapping.io.ply import write_ply
     from deepmapping.io.poses import write_pose_text, write_poses_npy
 

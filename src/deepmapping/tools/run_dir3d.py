@@ -1,0 +1,69 @@
+"""The run folder of a 3D registration: poses (npy, KITTI, TUM), registered cloud, M-Net
+occupancy (voxel grid + marching-cubes mesh), pictures, metrics."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from deepmapping.api import Result
+from deepmapping.data import ScanSet
+from deepmapping.tools.run_dir import _write_history_csv, write_config, write_json
+
+GRID_CELLS = 64  # default occupancy export: the map's longest side in this many voxels
+
+
+def write_poses_3d(out: Path, poses: np.ndarray) -> None:
+    from deepmapping.io.poses3d import write_kitti_poses, write_poses_npy_3d, write_tum_poses
+
+    write_poses_npy_3d(out / "poses.npy", poses)
+    write_kitti_poses(out / "poses_kitti.txt", poses)
+    write_tum_poses(out / "poses_tum.txt", poses)
+
+
+def write_occupancy(out: Path, scans: ScanSet, result: Result, voxel: float | None) -> None:
+    """The M-Net's map as a voxel grid of occupancy probabilities and its 0.5 level set as a mesh."""
+    from deepmapping.core import se3
+    from deepmapping.tools.export3d import occupancy_grid, occupancy_mesh, write_mesh_ply, write_occupancy_grid
+
+    glob = se3.transform_points(result.poses, scans.points)[scans.valid]
+    lo, hi = glob.min(0), glob.max(0)
+    voxel = voxel or float((hi - lo).max() / GRID_CELLS)
+    grid, origin, voxel = occupancy_grid(result.occupancy, lo, hi, voxel)
+    write_occupancy_grid(out / "occupancy.npz", grid, origin, voxel)
+    verts, tris = occupancy_mesh(grid, origin, voxel, level=0.5)
+    write_mesh_ply(out / "occupancy_mesh.ply", verts, tris)
+
+
+def write_run_3d(out: Path, scans: ScanSet, result: Result, data_info: dict, plots: bool = True) -> list[Path]:
+    from deepmapping.tools.export3d import write_registered_cloud
+
+    out.mkdir(parents=True, exist_ok=True)
+    write_poses_3d(out, result.poses)
+    write_config(out, result.config)
+    write_json(out / "run.json", {"method": result.method, "runtime_s": result.runtime_s,
+                                  "num_scans": scans.num_scans, "unit": scans.unit,
+                                  "unit_scale": scans.unit_scale, **data_info})
+    write_registered_cloud(out / "map.ply", scans.points, scans.valid, result.poses)
+    if result.metrics is not None:
+        write_json(out / "metrics.json", result.metrics)
+    if result.history.get("iteration"):
+        _write_history_csv(out / "history.csv", result.history)
+    if result.occupancy is not None:
+        write_occupancy(out, scans, result, result.config.eval.voxel_size)
+    if plots:
+        _write_pictures(out, scans, result)
+    return sorted(p for p in out.iterdir() if p.is_file() and not p.name.startswith("."))
+
+
+def _write_pictures(out: Path, scans: ScanSet, result: Result) -> None:
+    from deepmapping.tools import plots, plots3d
+
+    title = result.method
+    if result.metrics:
+        title += f" — ATE {result.metrics['ate']:.1f} {scans.unit}"
+    plots3d.plot_cloud_3d(out / "map.png", scans.points, scans.valid, result.poses, scans.gt_poses, title=title,
+                          unit_scale=scans.unit_scale, unit=scans.unit)
+    if result.history.get("iteration"):
+        plots.plot_curves(out / "curves.png", dict(result.history, unit=scans.unit))

@@ -1,0 +1,65 @@
+"""3D solver pieces: pose parameterizations, L-Net variants, padding, and a small 6-DoF registration."""
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from deepmapping.config import load_config
+from deepmapping.core import se3
+from deepmapping.solver.geometry import correction_matrix, planar_matrix, rotation_from_6d, six_dof_matrix, transform
+from deepmapping.solver.model import DeepMappingModel, fill_invalid
+from deepmapping.solver.networks import LNet
+
+
+def test_planar_matrix_matches_the_avd_convention():
+    p = np.array([[0.3, -1.2, 0.7], [2.0, 0.5, -2.5]])
+    np.testing.assert_allclose(planar_matrix(torch.tensor(p)).numpy(), se3.from_planar_xz(p), atol=1e-12)
+
+
+def test_six_dof_correction_is_identity_at_zero_and_a_rotation_elsewhere():
+    np.testing.assert_allclose(six_dof_matrix(torch.zeros(2, 9, dtype=torch.float64)).numpy(), se3.identity((2,)))
+    rot = rotation_from_6d(torch.randn(50, 6, dtype=torch.float64)).numpy()
+    np.testing.assert_allclose(rot @ np.swapaxes(rot, 1, 2), np.broadcast_to(np.eye(3), rot.shape), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(rot), 1.0, atol=1e-12)
+    # the 6D form is the first two columns: it reproduces any rotation exactly
+    r = Rotation.random(5, random_state=1).as_matrix()
+    six = torch.tensor(np.concatenate([r[:, :, 0], r[:, :, 1]], axis=1))
+    np.testing.assert_allclose(rotation_from_6d(six).numpy(), r, atol=1e-12)
+    assert correction_matrix(torch.zeros(3, 3)).shape == (3, 4, 4)
+
+
+def test_transform_3d_matches_numpy():
+    poses = se3.from_rt(Rotation.random(3, random_state=0).as_matrix(), np.random.default_rng(0).normal(size=(3, 3)))
+    pts = np.random.default_rng(1).normal(size=(3, 7, 3))
+    out = transform(torch.tensor(poses), torch.tensor(pts)).numpy()
+    np.testing.assert_allclose(out, se3.transform_points(poses, pts), atol=1e-12)
+    # free-space samples have an extra axis: (B, N, S, 3)
+    assert transform(torch.tensor(poses), torch.tensor(pts)[:, :, None].expand(-1, -1, 4, -1)).shape == (3, 7, 4, 3)
+
+
+def test_lnet_variants_output_planar_or_six_dof_corrections():
+    cfg = load_config("default-3d").lnet
+    depth = LNet(cfg, in_dim=3, out_dim=3, grid_shape=(12, 16))
+    assert isinstance(depth.features[0], torch.nn.Conv2d)
+    init = torch.eye(4).expand(2, 4, 4)
+    assert depth(torch.randn(2, 192, 3), init).shape == (2, 3)
+    cloud = LNet(cfg, in_dim=3, out_dim=9)
+    assert isinstance(cloud.features[0], torch.nn.Conv1d) and cloud.features[0].kernel_size == (1,)
+    assert cloud(torch.randn(2, 50, 3), init).shape == (2, 9)
+    with pytest.raises(ValueError, match="organized"):
+        LNet(cfg.model_copy(update={"extractor": "cnn"}), in_dim=3)
+
+
+def test_pointnet_sees_only_the_scan_not_its_padding():
+    torch.manual_seed(0)
+    cfg = load_config("default-3d").model_copy(deep=True)
+    cfg.lnet.zero_init_output, cfg.lnet.feature_norm = False, False
+    pts = torch.randn(1, 40, 3)
+    padded = torch.cat([pts, torch.full((1, 25, 3), 5.0)], dim=1)  # whatever the padding holds
+    valid = torch.cat([torch.ones(1, 40, dtype=torch.bool), torch.zeros(1, 25, dtype=torch.bool)], dim=1)
+    model = DeepMappingModel(cfg, padded, torch.eye(4)[None], valid=valid, pose_dof=6)
+    direct = model.lnet(pts, torch.eye(4)[None])
+    torch.testing.assert_close(model.lnet(model.lnet_scans, torch.eye(4)[None]), direct)
+    assert not torch.allclose(model.lnet(padded, torch.eye(4)[None]), direct)  # the padding would change it
+    assert torch.equal(fill_invalid(padded, valid)[0, :40], pts[0])
