@@ -1,3 +1,7 @@
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")  # Open3D (3D baselines) would use every core under pytest -n 2
+
 import pytest
 import torch
 

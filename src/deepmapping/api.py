@@ -40,9 +40,10 @@ def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | 
     scans.validate()
     cfg = config or load_config("default-3d" if scans.is_3d else "default")
     t0 = time.perf_counter()
-    if cfg.method in BASELINES:
-        poses = baseline_poses(scans, cfg, cfg.method, None, on_icp_progress)
-        return _finish(scans, cfg, poses, t0, init=None)
+    if cfg.method in BASELINES:  # initial guesses only from a pose file (warm_start.method = "file")
+        init = warm_start_poses(scans, cfg) if cfg.warm_start.method == "file" else None
+        poses = baseline_poses(scans, cfg, cfg.method, init, on_icp_progress)
+        return _finish(scans, cfg, poses, t0, init=init)
     saved = _load_checkpoint(checkpoint, cfg) if resume else None
     if saved is not None:
         init = np.asarray(saved["init_poses_input"])

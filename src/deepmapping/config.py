@@ -33,6 +33,9 @@ class LNetConfig(_Section):
     dilation: int = 2
     stride: int = 1  # convolution stride (1 in the paper; >1 makes depth-image L-Nets cheap)
     point_channels: list[int] = [64, 128, 256, 1024]  # PointNet's shared MLP (supplementary A)
+    # 3D: the L-Net's correction turns a scan about its sensor (as the paper) or about the
+    # scan's centroid (better conditioned when the sensor is far from what it sees, e.g. the bunny)
+    pivot: Literal["sensor", "centroid"] = "sensor"
     fc_channels: list[int] = [512, 256]
     zero_init_output: bool = False  # start as identity correction when warm-started
     # Standardize the pooled and hidden features with statistics fixed by one pass over all

@@ -56,7 +56,7 @@ def build_pose_graph(clouds, init=None, voxel_size=None, max_correspondence_dist
         for done, (i, j) in enumerate(ordered, start=1):
             guess = se3.relative(poses[j], poses[i])
             res = register_pair(pcds[i], pcds[j], guess, scales)
-            failed = not plausible(res, guess, scales)
+            failed = not plausible(res, guess, scales, pcds[i].get_center())
             results[i, j] = (guess if failed else res.transformation), failed
             if init is None and j == i + 1:
                 poses[j] = poses[i] @ np.linalg.inv(results[i, j][0])
@@ -77,13 +77,15 @@ def build_pose_graph(clouds, init=None, voxel_size=None, max_correspondence_dist
 MIN_FITNESS = 0.05  # share of source points with a fine-distance correspondence
 
 
-def plausible(res, guess: np.ndarray, scales) -> bool:
-    """A pairwise ICP result is kept when it overlaps at all and did not slide further than the
-    coarse correspondence distance from its guess (point-to-plane ICP on one dominant plane,
-    e.g. the floor, can slide without bound). A failed odometry pair keeps its guess as an
-    uncertain edge; a failed loop-closure pair gets no edge."""
-    step = se3.relative(guess, np.asarray(res.transformation))
-    return res.fitness >= MIN_FITNESS and float(np.linalg.norm(step[:3, 3])) <= scales.coarse
+def plausible(res, guess: np.ndarray, scales, center) -> bool:
+    """A pairwise ICP result is kept when it overlaps at all and did not move the source scan's
+    centre further than the coarse correspondence distance from where the guess put it
+    (point-to-plane ICP on one dominant plane, e.g. the floor, can slide without bound). A
+    failed odometry pair keeps its guess as an uncertain edge; a failed loop-closure pair gets
+    no edge."""
+    c = np.append(np.asarray(center, dtype=np.float64), 1.0)
+    moved = np.linalg.norm((np.asarray(res.transformation) @ c - guess @ c)[:3])
+    return res.fitness >= MIN_FITNESS and float(moved) <= scales.coarse
 
 
 def multiway_registration(

@@ -27,8 +27,6 @@ class Frame:
     def from_scans(cls, points: np.ndarray, valid: np.ndarray, poses: np.ndarray) -> "Frame":
         move = se3.transform_points if _is_3d(poses) else se2.transform_points
         glob = move(poses, points)[valid]
-        if _is_3d(poses):  # sensor positions belong to the map too (free space reaches them)
-            glob = np.concatenate([glob, np.asarray(poses)[:, :3, 3]])
         lo, hi = glob.min(0), glob.max(0)
         scale = float(max((hi - lo).max() / 2.0 * 1.1, 1e-9))
         return cls(center=(lo + hi) / 2.0, scale=scale)

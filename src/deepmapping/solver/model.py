@@ -18,6 +18,15 @@ def fill_invalid(scans: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     return torch.where(valid[..., None], scans, anchor[:, None, :])
 
 
+def centroid_frames(scans: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """(K, 4, 4) translations to each scan's centroid (in its sensor frame)."""
+    w = valid[..., None].to(scans.dtype)
+    c = (scans * w).sum(1) / w.sum(1).clamp(min=1)
+    out = torch.eye(4, dtype=scans.dtype, device=scans.device).repeat(scans.shape[0], 1, 1)
+    out[:, :3, 3] = c
+    return out
+
+
 class DeepMappingModel(nn.Module):
     """T_i = T_init_i ∘ f_theta(S_i) (warm start, §3.5); T_init = identity for a cold start.
 
@@ -36,6 +45,8 @@ class DeepMappingModel(nn.Module):
         lnet_in = scans if (grid_shape is not None or dim == 2 or valid is None) else fill_invalid(scans, valid)
         self.register_buffer("lnet_scans", lnet_in)
         self.register_buffer("init_poses", init_poses)
+        use_pivot = self.is_3d and cfg.lnet.pivot == "centroid" and valid is not None
+        self.register_buffer("pivot", centroid_frames(scans, valid) if use_pivot else None)
         self.direct_poses: nn.Parameter | None = None
         self.mnet_lr_factor = cfg.mnet.lr_factor
         self.lnet_lr_factor = cfg.lnet.lr_factor
@@ -44,15 +55,21 @@ class DeepMappingModel(nn.Module):
             spread = torch.linspace(0, k - 1, min(k, 512), device=scans.device).long()
             self.lnet.calibrate(lnet_in[spread], init_poses[spread])
 
-    def _with_correction(self, init: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
-        return init @ correction_matrix(out) if self.is_3d else compose(init, out)
+    def _with_correction(self, idx: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
+        init = self.init_poses[idx]
+        if not self.is_3d:
+            return compose(init, out)
+        if self.pivot is None:
+            return init @ correction_matrix(out)
+        p = self.pivot[idx]  # the correction turns the scan about its centroid, not about the sensor
+        return init @ p @ correction_matrix(out) @ torch.linalg.inv(p)
 
     def poses(self, idx: torch.Tensor) -> torch.Tensor:
         if self.direct_poses is not None:
             if self.is_3d:  # 3D direct parameters are the corrections themselves
-                return self._with_correction(self.init_poses[idx], self.direct_poses[idx])
+                return self._with_correction(idx, self.direct_poses[idx])
             return self.direct_poses[idx]
-        return self._with_correction(self.init_poses[idx], self.lnet(self.lnet_scans[idx], self.init_poses[idx]))
+        return self._with_correction(idx, self.lnet(self.lnet_scans[idx], self.init_poses[idx]))
 
     @torch.no_grad()
     def all_poses(self, chunk: int = 256) -> torch.Tensor:
