@@ -1,11 +1,11 @@
 """Real 3D data checks (issue 4): the Stanford Bunny and the 3DTK sample scans.
 
-    .venv/bin/python benchmarks/real_3d.py                 # both, full size (~10 min on 2 cores)
+    .venv/bin/python benchmarks/real_3d.py                 # both (~15 min on 2 cores)
     .venv/bin/python benchmarks/real_3d.py --max-points 500 --set optim.epochs=5   # smoke run
 
 Bunny (../shared/data/bunny, 10 range scans, exact poses in bun.conf): every method starts
 from a coarse start, the true poses turned by about 10 deg about each scan's centroid and
-shifted by about 1 cm (bun000, the fixed reference, exact), and also from the identity.
+shifted by about 1 cm (bun000, the fixed reference, exact); multiway also from the identity.
 Reported per scan: rotation error (deg) and translation error at the scan's centroid (mm),
 relative to bun000 (``deepmapping.io.bunny.bunny_pose_errors``).
 
@@ -33,7 +33,7 @@ METHODS = {  # name -> config overrides on the default-3d profile
     "deepmapping": {},
     "direct": {"method": "direct"},
 }
-BUNNY_SETTINGS = {"lnet.pivot": "centroid", "loss.near_hit_samples": 8, "loss.near_hit_distance": 0.2}
+BUNNY_SETTINGS = {"lnet.pivot": "centroid", "lnet.lr_factor": 0.02, "loss.near_hit_samples": 8, "loss.near_hit_distance": 0.2}
 
 
 def coarse_start(scans, deg: float = 10.0, mm: float = 10.0, seed: int = 0) -> np.ndarray:
@@ -81,6 +81,8 @@ def bunny(args, sets) -> dict:
     report = {"start": {name: bunny_pose_errors(p, scans.gt_poses, scans.names, centroids) for name, p in starts.items()}}
     for start, init in starts.items():
         for method, ov in METHODS.items():
+            if start == "identity" and method != "multiway":
+                continue  # 45-180 deg apart: only a global method has a chance (none of ours does)
             extra = (BUNNY_SETTINGS | sets) if method in ("deepmapping", "direct") else {}
             poses, runtime = register_from(scans, init, ov | extra | {"threads": args.threads})
             report[f"{method} from {start}"] = {"runtime_s": runtime,
@@ -117,7 +119,7 @@ def main(argv=None) -> dict:
     import yaml
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--max-points", type=int, default=4000, help="points per bunny scan (3DTK: 5x)")
+    ap.add_argument("--max-points", type=int, default=2000, help="points per bunny scan (3DTK: 5x)")
     ap.add_argument("--set", action="append", default=[], help="override for DeepMapping/direct, e.g. optim.epochs=100")
     ap.add_argument("--only", choices=["bunny", "3dtk"], default=None)
     ap.add_argument("--threads", type=int, default=2)

@@ -110,3 +110,22 @@ def test_centroid_pivot_turns_a_scan_about_its_centroid():
     centroid = pts[0].mean(0)
     torch.testing.assert_close(pose[:3, :3] @ centroid + pose[:3, 3], centroid)  # the centroid stays put
     assert not torch.allclose(pose[:3, :3], torch.eye(3))
+
+
+def test_paper_3d_profile_is_section_4_2_and_runs(tmp_path):
+    """§4.2: C(64)-C(128)-C(256)-C(1024)-AM(1)-FC(512)-FC(256)-FC(3), 35 samples per ray, lambda 0.1, batch 8."""
+    from deepmapping.api import register
+    from deepmapping.io.rgbd import load_rgbd
+    from deepmapping.sim.rgbd import write_rgbd_dataset
+
+    cfg = load_config("paper-3d", overrides={"optim.epochs": 1, "threads": 1})
+    assert (cfg.lnet.conv_channels, cfg.lnet.fc_channels) == ([64, 128, 256, 1024], [512, 256])
+    assert (cfg.lnet.kernel_size, cfg.lnet.dilation, cfg.lnet.stride) == (3, 2, 1)
+    assert (cfg.loss.free_samples, cfg.loss.chamfer_weight, cfg.optim.batch_size) == (35, 0.1, 8)
+    assert cfg.mnet.kind == "mlp" and cfg.mnet.hidden == [64, 512, 512, 256, 128]
+    write_rgbd_dataset(tmp_path, num_trajectories=1, frames=3, seed=1)
+    scans = load_rgbd(tmp_path / "traj_000", stride=8)  # 10 x 8 pixels: the full-size networks stay cheap
+    result = register(scans, cfg)
+    assert result.poses.shape == (3, 4, 4) and np.isfinite(result.poses).all()
+    # planar poses: the rotation stays about the vertical axis
+    np.testing.assert_allclose(result.poses[:, 1, :], [[0.0, 1.0, 0.0, 0.0]] * 3, atol=1e-6)

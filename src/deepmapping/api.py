@@ -88,6 +88,8 @@ def warm_start_poses(scans: ScanSet, cfg: Config, progress=None) -> np.ndarray:
     if ws.method == "none":
         return np.tile(np.eye(4), (scans.num_scans, 1, 1)) if scans.is_3d else np.zeros((scans.num_scans, 3))
     if ws.method == "file":
+        if scans.is_3d and scans.init_poses is not None:  # the loader read the file (in the scans' frames)
+            return np.asarray(scans.init_poses, dtype=np.float64)
         if ws.path is not None:
             init = _read_init(ws.path, scans.is_3d)
             if init.shape != (scans.num_scans, *scans.pose_shape()):

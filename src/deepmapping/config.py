@@ -60,6 +60,9 @@ class MNetConfig(_Section):
     grid_base: int = 16  # coarsest resolution (cells across the map)
     grid_finest: int = 512
     lr_factor: float = 1.0  # M-Net learning rate = optim.lr * lr_factor
+    # kind="fourier": open the frequency bands coarse to fine over this fraction of the epochs
+    # (BARF-style; 0 = all bands from the start)
+    coarse_to_fine: float = 0.0
 
 
 class LossConfig(_Section):

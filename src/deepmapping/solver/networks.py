@@ -115,17 +115,29 @@ class LNet(nn.Module):
 
 
 class FourierEncoding(nn.Module):
-    """Axis-aligned sin/cos features at log-spaced frequencies (period 2/f on a [-1, 1] map)."""
+    """Axis-aligned sin/cos features at log-spaced frequencies (period 2/f on a [-1, 1] map).
+
+    ``progress`` in [0, 1] opens the frequency bands one after the other, coarse to fine
+    (BARF, Lin et al. 2021): early on the map is smooth and its gradients reach poses that are
+    far off; 1 (the default) uses every band.
+    """
 
     def __init__(self, in_dim: int, num_freqs: int, max_freq: float):
         super().__init__()
         freqs = torch.logspace(0.0, math.log10(max(max_freq, 1.0)), num_freqs) * math.pi
         self.register_buffer("freqs", freqs)
+        self.register_buffer("band_weights", torch.ones(num_freqs))
         self.out_dim = in_dim * (1 + 2 * num_freqs)
+
+    def set_progress(self, progress: float) -> None:
+        alpha = min(max(progress, 0.0), 1.0) * len(self.freqs)
+        k = torch.arange(len(self.freqs), dtype=self.freqs.dtype, device=self.freqs.device)
+        self.band_weights.copy_((1 - torch.cos(math.pi * (alpha - k).clamp(0.0, 1.0))) / 2)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         arg = x[..., :, None] * self.freqs  # (..., D, F)
-        enc = torch.cat([torch.sin(arg), torch.cos(arg)], dim=-1).flatten(-2)
+        w = self.band_weights
+        enc = torch.cat([torch.sin(arg) * w, torch.cos(arg) * w], dim=-1).flatten(-2)
         return torch.cat([x, enc], dim=-1)
 
 

@@ -116,6 +116,7 @@ class Trainer:
             self._log(0, float("nan"), float("nan"), float("nan"), 0.0, on_log)
         try:
             while st.epoch < cfg.epochs:
+                self._anneal_mnet()
                 rng = np.random.default_rng([self.cfg.seed, st.epoch])
                 sums = np.zeros(3)
                 batches = epoch_batches(k, cfg.batch_size, rng)
@@ -145,6 +146,12 @@ class Trainer:
                 ckpt.save(checkpoint_path, self)
             raise Interrupted(checkpoint_path) from None
         return st
+
+    def _anneal_mnet(self) -> None:
+        frac = self.cfg.mnet.coarse_to_fine
+        enc = getattr(self.model.mnet, "encoding", None)
+        if frac > 0 and hasattr(enc, "set_progress"):
+            enc.set_progress(self.state.epoch / (frac * self.cfg.optim.epochs))
 
     def _log(self, step, loss, bce, ch, elapsed, on_log) -> np.ndarray:
         poses = self.model.all_poses().cpu().numpy().astype(np.float64)

@@ -46,6 +46,7 @@ def write_run_3d(out: Path, scans: ScanSet, result: Result, data_info: dict, plo
                                   "num_scans": scans.num_scans, "unit": scans.unit,
                                   "unit_scale": scans.unit_scale, **data_info})
     write_registered_cloud(out / "map.ply", scans.points, scans.valid, result.poses)
+    _write_3dtk_frames(out, scans, result.poses)
     if result.metrics is not None:
         write_json(out / "metrics.json", result.metrics)
     if result.history.get("iteration"):
@@ -55,6 +56,17 @@ def write_run_3d(out: Path, scans: ScanSet, result: Result, data_info: dict, plo
     if plots:
         _write_pictures(out, scans, result)
     return sorted(p for p in out.iterdir() if p.is_file() and not p.name.startswith("."))
+
+
+def _write_3dtk_frames(out: Path, scans: ScanSet, poses: np.ndarray) -> None:
+    """3DTK input: also slam6D-style ``frames/scanNNN.frames`` (one line, the final pose)."""
+    from deepmapping.io.threedtk import is_3dtk_folder, write_frames
+
+    if not is_3dtk_folder(Path(scans.source)):
+        return
+    (out / "frames").mkdir(exist_ok=True)
+    for name, pose in zip(scans.names, poses):
+        write_frames(out / "frames" / f"{name}.frames", pose[None])
 
 
 def _write_pictures(out: Path, scans: ScanSet, result: Result) -> None:
