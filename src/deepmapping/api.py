@@ -85,6 +85,8 @@ def incremental_icp(scans: ScanSet, cfg: Config, method: str, progress=None) -> 
 def warm_start_poses(scans: ScanSet, cfg: Config, progress=None) -> np.ndarray:
     """Initial poses (§3.5): identity (cold start), incremental ICP, or a given pose file."""
     ws = cfg.warm_start
+    if ws.method == "auto":  # 3D depth images: cold start; clouds and 2D scans: point-to-plane ICP
+        ws = ws.model_copy(update={"method": "none" if scans.grid_shape is not None else "icp-plane"})
     if ws.method == "none":
         return np.tile(np.eye(4), (scans.num_scans, 1, 1)) if scans.is_3d else np.zeros((scans.num_scans, 3))
     if ws.method == "file":
@@ -99,7 +101,7 @@ def warm_start_poses(scans: ScanSet, cfg: Config, progress=None) -> np.ndarray:
         else:
             raise ConfigError("warm_start.method is 'file' but no initial pose file was given")
         return np.asarray(init, dtype=np.float64)
-    return baseline_poses(scans, cfg, ws.method, scans.init_poses, progress)
+    return baseline_poses(scans, cfg, ws.method, None, progress)
 
 
 def _read_init(path, is_3d: bool) -> np.ndarray:

@@ -16,7 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from deepmapping.errors import ConfigError
 
 Method = Literal["deepmapping", "direct", "icp-point", "icp-plane", "multiway"]
-WarmStart = Literal["none", "icp-point", "icp-plane", "multiway", "file"]
+WarmStart = Literal["none", "icp-point", "icp-plane", "multiway", "file", "auto"]
 
 
 class _Section(BaseModel):
@@ -42,6 +42,7 @@ class LNetConfig(_Section):
     # scans at the start. Without it the features of all scans are nearly parallel, and the
     # L-Net learns one shared correction first and per-scan corrections very slowly.
     feature_norm: bool = False
+    feature_std_floor: float = 0.0  # Standardize: std >= this x the layer's mean std (0 = off)
     lr_factor: float = 1.0  # L-Net learning rate = optim.lr * lr_factor (direct poses use optim.lr)
     # Also feed the L-Net its scan's warm-start pose (x, y, cos, sin with this many Fourier
     # frequencies; 0 = the scan only, as in the paper).
@@ -95,6 +96,8 @@ class ICPConfig(_Section):
 
 
 class WarmStartConfig(_Section):
+    # "auto" (3D): none for AVD-like depth images (low overlap: pairwise ICP is wrong more often
+    # than right there), icp-plane for point-cloud sequences
     method: WarmStart = "icp-plane"
     path: str | None = None  # initial poses file (method="file")
 
@@ -174,11 +177,12 @@ PROFILES: dict[str, dict] = {
     # Fast 3D path (benchmarks/avd_3d.py measures it).
     "default-3d": {
         "lnet": {"conv_channels": [32, 64, 128], "stride": 2, "fc_channels": [256, 128], "zero_init_output": True,
-                 "feature_norm": True, "lr_factor": 0.1, "pose_input_freqs": 8, "point_channels": [64, 128, 256]},
-        "mnet": {"kind": "fourier", "hidden": [128, 128, 128], "fourier_features": 16},
-        "loss": {"free_samples": 8, "free_sampling": "stratified", "beams_per_scan": 1024, "chamfer_weight": 0.1},
-        "optim": {"batch_size": 16, "epochs": 300, "lr_final_factor": 0.05, "eval_every": 10},
-        "warm_start": {"method": "multiway"},
+                 "feature_norm": True, "feature_std_floor": 0.1, "lr_factor": 0.3, "pose_input_freqs": 8,
+                 "point_channels": [64, 128, 256]},
+        "mnet": {"kind": "fourier", "hidden": [128, 128, 128], "fourier_features": 16, "coarse_to_fine": 0.5},
+        "loss": {"free_samples": 8, "free_sampling": "stratified", "beams_per_scan": 256, "chamfer_weight": 0.1},
+        "optim": {"batch_size": 4, "epochs": 200, "lr_final_factor": 0.05, "eval_every": 10},
+        "warm_start": {"method": "auto"},
     },
 }
 

@@ -18,16 +18,20 @@ class Standardize(nn.Module):
     pose never depends on which scans share a batch, and evaluation equals training.
     """
 
-    def __init__(self, dim: int):
+    def __init__(self, dim: int, std_floor: float = 0.0):
         super().__init__()
         self.register_buffer("mean", torch.zeros(dim))
         self.register_buffer("std", torch.ones(dim))
+        self.std_floor = std_floor
         self.calibrating = False
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self.calibrating:
+            std = x.std(0, unbiased=False)
+            # a feature that barely varies over the scans must not be amplified without bound
+            # once the weights move: floor its std at a fraction of the layer's mean std
             self.mean.copy_(x.mean(0))
-            self.std.copy_(x.std(0, unbiased=False) + 1e-5)
+            self.std.copy_(std.clamp(min=self.std_floor * float(std.mean())) + 1e-5)
         return (x - self.mean) / self.std
 
 
@@ -79,9 +83,10 @@ class LNet(nn.Module):
             self.pose_encoding = FourierEncoding(4 if in_dim == 2 else 9, cfg.pose_input_freqs,
                                                  2.0 ** (cfg.pose_input_freqs - 1))
             prev += self.pose_encoding.out_dim
-        mlp: list[nn.Module] = [Standardize(prev)] if cfg.feature_norm else []
+        floor = cfg.feature_std_floor
+        mlp: list[nn.Module] = [Standardize(prev, floor)] if cfg.feature_norm else []
         for ch in cfg.fc_channels:
-            mlp += [nn.Linear(prev, ch)] + ([Standardize(ch)] if cfg.feature_norm else []) + [nn.ReLU()]
+            mlp += [nn.Linear(prev, ch)] + ([Standardize(ch, floor)] if cfg.feature_norm else []) + [nn.ReLU()]
             prev = ch
         self.head = nn.Sequential(*mlp)
         self.out = nn.Linear(prev, out_dim)
