@@ -38,6 +38,7 @@ import numpy as np
 from deepmapping.core import se3
 from deepmapping.data import ScanSet
 from deepmapping.errors import InputError
+from deepmapping.io.clouds import check_max_points, pad_clouds, subsample
 
 __all__ = ["SENSOR_Y", "SENSOR_Z", "is_bunny_folder", "read_bun_conf", "load_bunny",
            "scan_centroids", "bunny_pose_errors"]
@@ -114,8 +115,7 @@ def load_bunny(folder: str | os.PathLike, gt_path=None, init_path=None, max_poin
 
     folder = Path(folder)
     entries = read_bun_conf(folder / "bun.conf")
-    if max_points is not None and max_points < 1:
-        raise InputError(f"{folder}: max_points must be >= 1, got {max_points}")
+    check_max_points(folder, max_points)
     rng = np.random.default_rng(seed)
     clouds, origins = [], []
     for name, _ in entries:
@@ -123,15 +123,11 @@ def load_bunny(folder: str | os.PathLike, gt_path=None, init_path=None, max_poin
         if len(xyz) == 0 or not np.isfinite(xyz).all():
             raise InputError(f"{folder / name}: no point, or NaN/inf coordinates")
         o = np.array([(xyz[:, 0].min() + xyz[:, 0].max()) / 2, SENSOR_Y, SENSOR_Z])
-        if max_points is not None and len(xyz) > max_points:
-            xyz = xyz[np.sort(rng.choice(len(xyz), max_points, replace=False))]
-        clouds.append(xyz - o)
+        clouds.append(subsample(xyz, max_points, rng) - o)
         origins.append(o)
     origins = np.array(origins)
-    k, n = len(clouds), max(len(c) for c in clouds)
-    points, valid = np.zeros((k, n, 3), np.float32), np.zeros((k, n), bool)
-    for i, c in enumerate(clouds):
-        points[i, : len(c)], valid[i, : len(c)] = c, True
+    k = len(clouds)
+    points, valid = pad_clouds(clouds)
     names = [n for n, _ in entries]
     gt = np.stack([p for _, p in entries]) @ _translations(origins)
     if gt_path is not None:

@@ -19,6 +19,7 @@ import numpy as np
 
 from deepmapping.data import ScanSet
 from deepmapping.errors import InputError
+from deepmapping.io.clouds import check_max_points, pad_clouds, subsample
 from deepmapping.io.rgbd import load_pose_files, read_json, sorted_files
 
 __all__ = ["is_lidar_folder", "load_lidar"]
@@ -58,20 +59,9 @@ def load_lidar(folder: str | os.PathLike, gt_path=None, init_path=None, max_poin
     files = sorted_files(scans_dir, _SUFFIXES)
     if len(files) < 2:
         raise InputError(f"{scans_dir}: need at least two scans (.ply/.pcd), found {len(files)}")
-    if max_points is not None and max_points < 1:
-        raise InputError(f"{folder}: max_points must be >= 1, got {max_points}")
+    check_max_points(folder, max_points)
     rng = np.random.default_rng(seed)
-    clouds = []
-    for f in files:
-        xyz = _read_cloud(f)
-        if max_points is not None and len(xyz) > max_points:
-            xyz = xyz[np.sort(rng.choice(len(xyz), max_points, replace=False))]
-        clouds.append(xyz)
-    n = max(len(c) for c in clouds)
-    points = np.zeros((len(clouds), n, 3), dtype=np.float32)
-    valid = np.zeros((len(clouds), n), dtype=bool)
-    for k, c in enumerate(clouds):
-        points[k, : len(c)], valid[k, : len(c)] = c, True
+    points, valid = pad_clouds([subsample(_read_cloud(f), max_points, rng) for f in files])
     gt, init = load_pose_files(folder, len(files), gt_path, init_path)
     dof = read_json(folder / "meta.json", required=False).get("pose_dof", 6)
     if dof not in (3, 6):

@@ -35,6 +35,7 @@ import numpy as np
 from deepmapping.core import se3
 from deepmapping.data import ScanSet
 from deepmapping.errors import InputError
+from deepmapping.io.clouds import check_max_points, pad_clouds, subsample
 from deepmapping.io.atomic import atomic_write, read_user_file
 
 __all__ = ["is_3dtk_folder", "read_3d", "read_pose", "read_frames", "write_frames", "load_3dtk"]
@@ -190,8 +191,7 @@ def load_3dtk(folder: str | os.PathLike, gt_path=None, init_path=None, max_point
     files = _scan_files(folder)
     if len(files) < 2:
         raise InputError(f"{folder}: need at least two scanNNN.3d files, found {len(files)}")
-    if max_points is not None and max_points < 1:
-        raise InputError(f"{folder}: max_points must be >= 1, got {max_points}")
+    check_max_points(folder, max_points)
     rng = np.random.default_rng(seed)
     clouds = []
     for f in files:
@@ -200,13 +200,8 @@ def load_3dtk(folder: str | os.PathLike, gt_path=None, init_path=None, max_point
         xyz = xyz[(r >= min_range) & (r <= max_range)]
         if len(xyz) == 0:
             raise InputError(f"{f}: no point between {min_range} m and {max_range} m from the scanner")
-        if max_points is not None and len(xyz) > max_points:
-            xyz = xyz[np.sort(rng.choice(len(xyz), max_points, replace=False))]
-        clouds.append(xyz)
-    k, n = len(clouds), max(len(c) for c in clouds)
-    points, valid = np.zeros((k, n, 3), np.float32), np.zeros((k, n), bool)
-    for i, c in enumerate(clouds):
-        points[i, : len(c)], valid[i, : len(c)] = c, True
+        clouds.append(subsample(xyz, max_points, rng))
+    points, valid = pad_clouds(clouds)
     has_frames = all(f.with_suffix(".frames").is_file() for f in files)
     gt = _poses(folder, files, gt_path, ".frames", "reference poses") if gt_path or has_frames else None
     init = _poses(folder, files, init_path, ".frames" if use_frames else ".pose", "initial poses")
