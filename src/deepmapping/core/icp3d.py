@@ -130,7 +130,8 @@ def incremental_icp_3d(
 
     Scan i+1 is registered to scan i ("plane": point-to-plane, "point": point-to-point), from
     the relative motion of ``init`` (K, 4, 4) when given, else the identity; the relative
-    motions are chained. Pose 0 = ``init[0]`` or the identity. ``progress(i, K-1)`` after each
+    motions are chained; an implausible pair (see ``multiway.plausible``: no overlap, or slid
+    off) keeps its guess. Pose 0 = ``init[0]`` or the identity. ``progress(i, K-1)`` after each
     registered pair. Returns sensor-to-world poses (K, 4, 4).
     """
     if method not in ("plane", "point"):
@@ -144,7 +145,10 @@ def incremental_icp_3d(
     poses[1:] = np.eye(4)
     for i in range(k - 1):
         guess = np.eye(4) if init is None else se3.relative(init[i], init[i + 1])
-        rel = register_pair(pcds[i + 1], pcds[i], guess, scales, method, max_iterations).transformation
+        res = register_pair(pcds[i + 1], pcds[i], guess, scales, method, max_iterations)
+        from deepmapping.core.multiway import plausible
+
+        rel = np.asarray(res.transformation) if plausible(res, guess, scales, pcds[i + 1].get_center()) else guess
         poses[i + 1] = poses[i] @ rel
         if progress is not None:
             progress(i + 1, k - 1)
