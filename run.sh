@@ -22,7 +22,8 @@ apt_install() {  # system packages a fresh Debian/Ubuntu may lack
 
 need_libusb() {  # Open3D (3D simulator and baselines) fails to import without it
   [ "$(uname -s)" = Linux ] || return 1
-  ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' && return 1
+  compgen -G '/usr/lib/*/libusb-1.0.so.0' >/dev/null || compgen -G '/lib/*/libusb-1.0.so.0' >/dev/null ||
+    { PATH="$PATH:/sbin:/usr/sbin" ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; } && return 1
   return 0
 }
 
