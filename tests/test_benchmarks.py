@@ -52,3 +52,29 @@ def test_benchmark_smoke_run_writes_its_tables_and_figure(tmp_path):
     assert "| icp-plane |" in md and "| deepmapping (default) |" in md
     assert (out / "ate_vs_time.png").stat().st_size > 10_000
     assert (out / "runs" / "traj0" / "deepmapping_default" / "poses.npy").exists()
+
+
+def test_avd_3d_benchmark_smoke_run(tmp_path):
+    """benchmarks/avd_3d.py end to end at toy size: tables with the identity reference row."""
+    script = SCRIPT.parent / "avd_3d.py"
+    cmd = [sys.executable, str(script), "--trajectories", "1", "--frames", "4", "--jobs", "1",
+           "--methods", "multiway,deepmapping", "--set", "optim.epochs=2", "--out", str(tmp_path)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    data = json.loads((tmp_path / "results.json").read_text())
+    assert set(data["summary"]) == {"identity", "multiway", "deepmapping"}
+    assert data["runs"]["deepmapping"][0]["num_scans"] == 4
+    assert "| deepmapping |" in (tmp_path / "results.md").read_text()
+
+
+def test_real_3d_benchmark_smoke_run(tmp_path):
+    """benchmarks/real_3d.py on the 3DTK scans at toy size writes slam6D .frames per method."""
+    if not (SCRIPT.parents[2] / "shared" / "data" / "3dtk").is_dir():
+        pytest.skip("../shared/data (the team's real datasets) is not present")
+    cmd = [sys.executable, str(SCRIPT.parent / "real_3d.py"), "--only", "3dtk", "--max-points", "60", "--threads", "1",
+           "--set", "optim.epochs=2", "--out", str(tmp_path)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    report = json.loads((tmp_path / "results.json").read_text())["3dtk"]
+    assert set(report) == {"odometry", "icp-plane", "multiway", "deepmapping", "direct"}
+    assert (tmp_path / "3dtk_frames" / "deepmapping" / "scan002.frames").is_file()
