@@ -69,8 +69,6 @@ def test_avd_3d_benchmark_smoke_run(tmp_path):
 
 def test_real_3d_benchmark_smoke_run(tmp_path):
     """benchmarks/real_3d.py on the 3DTK scans at toy size writes slam6D .frames per method."""
-    if not (SCRIPT.parents[2] / "shared" / "data" / "3dtk").is_dir():
-        pytest.skip("../shared/data (the team's real datasets) is not present")
     cmd = [sys.executable, str(SCRIPT.parent / "real_3d.py"), "--only", "3dtk", "--max-points", "60", "--threads", "1",
            "--set", "optim.epochs=2", "--out", str(tmp_path)]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
