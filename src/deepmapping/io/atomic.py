@@ -1,7 +1,8 @@
-"""Atomic file writes: a reader never sees a half-written file."""
+"""Atomic file writes (a reader never sees a half-written file) and reading users' input files."""
 
 from __future__ import annotations
 
+import json
 import os
 import tempfile
 from pathlib import Path
@@ -44,3 +45,32 @@ def read_user_file(path) -> bytes:
         return path.read_bytes()
     except OSError as e:
         raise InputError(f"{path}: cannot read ({e.strerror or e})") from None
+
+
+def read_user_text(path) -> str:
+    """A user's text file as str (UTF-8); InputError naming the file when it cannot be read."""
+    from deepmapping.errors import InputError
+
+    try:
+        return read_user_file(path).decode("utf-8")
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a UTF-8 text file") from None
+
+
+def write_text(path, text: str) -> None:
+    atomic_write(path, lambda f: f.write(text.encode("utf-8")))
+
+
+def _jsonable(x):
+    import numpy as np
+
+    if isinstance(x, (np.floating, np.integer, np.bool_)):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    raise TypeError(type(x))
+
+
+def write_json(path, data) -> None:
+    """``data`` as indented JSON (NumPy scalars and arrays allowed), atomically."""
+    write_text(path, json.dumps(data, indent=2, default=_jsonable) + "\n")

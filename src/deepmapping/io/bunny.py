@@ -54,13 +54,10 @@ def is_bunny_folder(path: str | os.PathLike) -> bool:
 
 def read_bun_conf(path: str | os.PathLike) -> list[tuple[str, np.ndarray]]:
     """[(file name, (4, 4) pose R(q)^T p + t)] of the ``bmesh`` lines, in file order."""
-    from deepmapping.io.atomic import read_user_file
+    from deepmapping.io.atomic import read_user_text
 
     path = Path(path)
-    try:
-        text = read_user_file(path).decode("utf-8")
-    except UnicodeDecodeError:
-        raise InputError(f"{path}: not a text file") from None
+    text = read_user_text(path)
     out = []
     for lineno, line in enumerate(text.splitlines(), start=1):
         tok = line.split()

@@ -20,7 +20,7 @@ import numpy as np
 
 from deepmapping.core import se3
 from deepmapping.errors import InputError
-from deepmapping.io.atomic import atomic_write, read_user_file
+from deepmapping.io.atomic import atomic_write, read_user_file, read_user_text
 
 __all__ = [
     "read_kitti_poses", "write_kitti_poses", "read_tum_poses", "write_tum_poses",
@@ -32,10 +32,7 @@ ROT_TOL = 1e-3
 
 def _rows(path: Path) -> list[tuple[int, list[str]]]:
     """(line number, tokens) of the non-comment, non-blank lines of a text file."""
-    try:
-        text = read_user_file(path).decode("utf-8")
-    except UnicodeDecodeError:
-        raise InputError(f"{path}: pose file is not utf-8 text") from None
+    text = read_user_text(path)
     rows = []
     for lineno, line in enumerate(text.splitlines(), start=1):
         line = line.strip()

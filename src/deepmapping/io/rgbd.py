@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 from pathlib import Path
 
 import numpy as np
@@ -31,11 +30,10 @@ _INTR_KEYS = ("width", "height", "fx", "fy", "cx", "cy")
 
 def sorted_files(folder: Path, suffixes: tuple[str, ...]) -> list[Path]:
     """Files of ``folder`` ending in one of ``suffixes`` (no hidden ones), natural order (2 < 10)."""
-    def key(p: Path):
-        return [(0, int(t), t) if t.isdigit() else (1, 0, t) for t in re.split(r"(\d+)", p.name.lower()) if t]
+    from deepmapping.io.loaders import natural_key
 
     files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in suffixes and not p.name.startswith(".")]
-    return sorted(files, key=key)
+    return sorted(files, key=lambda p: natural_key(p.name))
 
 
 def is_rgbd_folder(path: str | os.PathLike) -> bool:

@@ -36,7 +36,7 @@ from deepmapping.core import se3
 from deepmapping.data import ScanSet
 from deepmapping.errors import InputError
 from deepmapping.io.clouds import check_max_points, pad_clouds, subsample
-from deepmapping.io.atomic import atomic_write, read_user_file
+from deepmapping.io.atomic import atomic_write, read_user_text
 
 __all__ = ["is_3dtk_folder", "read_3d", "read_pose", "read_frames", "write_frames", "load_3dtk"]
 
@@ -68,11 +68,6 @@ def is_3dtk_folder(path: str | os.PathLike) -> bool:
     return bool(files) and files[0].with_suffix(".pose").is_file()
 
 
-def _text(path: Path) -> str:
-    try:
-        return read_user_file(path).decode("utf-8")
-    except UnicodeDecodeError:
-        raise InputError(f"{path}: not a text file") from None
 
 
 def _is_point(line: str) -> bool:
@@ -87,7 +82,7 @@ def _is_point(line: str) -> bool:
 def read_3d(path: str | os.PathLike) -> np.ndarray:
     """(N, 3) float64 points of a ``.3d`` file, in 3DTK's numbers (cm, left-handed)."""
     path = Path(path)
-    lines = _text(path).splitlines()
+    lines = read_user_text(path).splitlines()
     start = 0
     while start < len(lines) and not _is_point(lines[start]):  # skip a header
         start += 1
@@ -109,7 +104,7 @@ def read_pose(path: str | os.PathLike) -> np.ndarray:
 
     path = Path(path)
     try:
-        v = np.array([float(t) for t in _text(path).split()])
+        v = np.array([float(t) for t in read_user_text(path).split()])
     except ValueError:
         raise InputError(f"{path}: expected 6 numbers 'x y z' and 'θx θy θz' (degrees)") from None
     if v.shape != (6,) or not np.isfinite(v).all():
@@ -123,7 +118,7 @@ def read_frames(path: str | os.PathLike, return_codes: bool = False):
     ``return_codes`` also the (M,) algorithm codes (-1 where a line has none)."""
     path = Path(path)
     mats, codes = [], []
-    for lineno, line in enumerate(_text(path).splitlines(), start=1):
+    for lineno, line in enumerate(read_user_text(path).splitlines(), start=1):
         tok = line.split()
         if not tok:
             continue

@@ -152,7 +152,7 @@ def write_lidar_dataset(out_dir: str | os.PathLike, num_trajectories: int = 10, 
     """Write ``traj_000/ ...`` folders (scans/NNNNNN.ply, gt_poses.txt, meta.json); scene seeds as in sim.rgbd."""
     from deepmapping.io.ply import write_ply
     from deepmapping.io.poses3d import write_kitti_poses
-    from deepmapping.sim.rgbd import write_json
+    from deepmapping.io.atomic import write_json
     from deepmapping.sim.scene3d import make_scene
 
     cfg = LidarConfig(beams, None, azimuth_res_deg, max_range_m, 0.1, noise_std_m)

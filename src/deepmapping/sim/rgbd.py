@@ -20,7 +20,6 @@ share one scene: trajectory t uses scene seed ``1000 * seed + t // trajectories_
 from __future__ import annotations
 
 import io
-import json
 import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -28,11 +27,11 @@ from pathlib import Path
 import numpy as np
 
 from deepmapping.core import se3
-from deepmapping.io.atomic import atomic_write
+from deepmapping.io.atomic import atomic_write, write_json
 from deepmapping.sim.raycast import caster_for
 
 __all__ = ["Intrinsics", "render_depth", "grid_trajectory", "simulate_rgbd_trajectory",
-           "write_rgbd_dataset", "write_json"]
+           "write_rgbd_dataset"]
 
 VIEW_STEP_DEG = 30.0
 
@@ -116,12 +115,6 @@ def simulate_rgbd_trajectory(scene, frames: int, rng: np.random.Generator, intri
     poses = se3.from_planar_xz(grid_trajectory(scene, frames, rng, p_move))
     depth = np.stack([render_depth(scene, T, intrinsics, max_depth_m, noise_std_m, rng) for T in poses])
     return depth, poses
-
-
-def write_json(path, obj) -> None:
-    """Write ``obj`` as indented JSON, atomically."""
-    data = (json.dumps(obj, indent=2) + "\n").encode("utf-8")
-    atomic_write(path, lambda f: f.write(data))
 
 
 def _write_png16(path, img: np.ndarray) -> None:

@@ -42,6 +42,11 @@ def _matrix(rot: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     return torch.cat([torch.cat([rot, t[..., :, None]], dim=-1), bottom], dim=-2)
 
 
+def translation(t: torch.Tensor) -> torch.Tensor:
+    """(B, 3) -> (B, 4, 4) pure translations."""
+    return _matrix(torch.eye(3, dtype=t.dtype, device=t.device).expand(t.shape[0], 3, 3), t)
+
+
 def planar_matrix(p: torch.Tensor) -> torch.Tensor:
     """(B, 3) [x, z, theta] (theta about the vertical y axis) -> (B, 4, 4)."""
     c, s = torch.cos(p[:, 2]), torch.sin(p[:, 2])

@@ -6,7 +6,7 @@ import torch
 from torch import nn
 
 from deepmapping.config import Config
-from deepmapping.solver.geometry import compose, correction_matrix
+from deepmapping.solver.geometry import compose, correction_matrix, translation
 from deepmapping.solver.networks import LNet, MNet
 
 
@@ -18,13 +18,10 @@ def fill_invalid(scans: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     return torch.where(valid[..., None], scans, anchor[:, None, :])
 
 
-def centroid_frames(scans: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-    """(K, 4, 4) translations to each scan's centroid (in its sensor frame)."""
+def centroids(scans: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """(K, 3) mean of each scan's valid points (in its sensor frame)."""
     w = valid[..., None].to(scans.dtype)
-    c = (scans * w).sum(1) / w.sum(1).clamp(min=1)
-    out = torch.eye(4, dtype=scans.dtype, device=scans.device).repeat(scans.shape[0], 1, 1)
-    out[:, :3, 3] = c
-    return out
+    return (scans * w).sum(1) / w.sum(1).clamp(min=1)
 
 
 class DeepMappingModel(nn.Module):
@@ -46,7 +43,7 @@ class DeepMappingModel(nn.Module):
         self.register_buffer("lnet_scans", lnet_in)
         self.register_buffer("init_poses", init_poses)
         use_pivot = self.is_3d and cfg.lnet.pivot == "centroid" and valid is not None
-        self.register_buffer("pivot", centroid_frames(scans, valid) if use_pivot else None)
+        self.register_buffer("pivot", centroids(scans, valid) if use_pivot else None)
         self.direct_poses: nn.Parameter | None = None
         self.mnet_lr_factor = cfg.mnet.lr_factor
         self.lnet_lr_factor = cfg.lnet.lr_factor
@@ -61,8 +58,8 @@ class DeepMappingModel(nn.Module):
             return compose(init, out)
         if self.pivot is None:
             return init @ correction_matrix(out)
-        p = self.pivot[idx]  # the correction turns the scan about its centroid, not about the sensor
-        return init @ p @ correction_matrix(out) @ torch.linalg.inv(p)
+        c = self.pivot[idx]  # the correction turns the scan about its centroid c, not about the sensor
+        return init @ translation(c) @ correction_matrix(out) @ translation(-c)
 
     def poses(self, idx: torch.Tensor) -> torch.Tensor:
         if self.direct_poses is not None:

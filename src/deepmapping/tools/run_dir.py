@@ -7,7 +7,6 @@ config.yaml, run.json and (when ground truth is known) metrics.json. The checkpo
 
 from __future__ import annotations
 
-import json
 from datetime import datetime
 from pathlib import Path
 
@@ -16,7 +15,7 @@ import numpy as np
 from deepmapping.api import Result
 from deepmapping.core import se2
 from deepmapping.data import ScanSet
-from deepmapping.io.pcd import atomic_write
+from deepmapping.io.atomic import write_json, write_text
 
 
 def default_run_dir(method: str, root: str | Path = "runs") -> Path:
@@ -24,20 +23,6 @@ def default_run_dir(method: str, root: str | Path = "runs") -> Path:
     return Path(root) / f"{datetime.now():%Y%m%d-%H%M%S}_{method}"
 
 
-def write_text(path: Path, text: str) -> None:
-    atomic_write(path, lambda f: f.write(text.encode()))
-
-
-def write_json(path: Path, data) -> None:
-    write_text(path, json.dumps(data, indent=2, default=_jsonable) + "\n")
-
-
-def _jsonable(x):
-    if isinstance(x, (np.floating, np.integer, np.bool_)):
-        return x.item()
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    raise TypeError(type(x))
 
 
 def write_config(out: Path, result_config) -> None:
