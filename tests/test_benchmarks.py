@@ -76,3 +76,18 @@ def test_real_3d_benchmark_smoke_run(tmp_path):
     report = json.loads((tmp_path / "results.json").read_text())["3dtk"]
     assert set(report) == {"odometry", "icp-plane", "multiway", "deepmapping", "direct"}
     assert (tmp_path / "3dtk_frames" / "deepmapping" / "scan002.frames").is_file()
+
+
+def test_carmen_benchmark_smoke_run(tmp_path):
+    """benchmarks/carmen.py on fr079 at toy density: the relations table, the reference reproduced."""
+    cmd = [sys.executable, str(SCRIPT.parent / "carmen.py"), "--logs", "fr079", "--methods",
+           "reference,odometry,dm-odometry", "--keyframes", "every:60", "--threads", "1",
+           "--set", "optim.epochs=2", "--out", str(tmp_path)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    rows = json.loads((tmp_path / "results.json").read_text())["fr079"]
+    assert set(rows) == {"reference", "odometry", "dm-odometry"}
+    assert abs(rows["reference"]["relations"]["all"]["trans_mean_m"] - 0.058) < 0.002
+    assert rows["odometry"]["relations"]["unmatched"] == 0 and rows["odometry"]["keyframes"] == 83
+    assert rows["dm-odometry"]["peak_rss_mb"] > 0 and rows["dm-odometry"]["wall_s"] > 0
+    assert "| dm-odometry | 83 |" in (tmp_path / "results.md").read_text()

@@ -158,8 +158,8 @@ def test_standardize_std_floor_bounds_the_gain_of_a_constant_feature():
         assert (gain < 20.0) == bounded  # without the floor: 1e5
 
 
-def test_auto_warm_start_is_cold_for_depth_images_and_icp_for_clouds(lidar_problem, tmp_path):
-    from deepmapping.api import warm_start_poses
+def test_auto_warm_start_is_planar_icp_for_depth_images_and_icp_for_clouds(lidar_problem, tmp_path):
+    from deepmapping.api import baseline_poses, warm_start_poses
     from deepmapping.io.rgbd import load_rgbd
     from deepmapping.sim.rgbd import write_rgbd_dataset
 
@@ -167,6 +167,8 @@ def test_auto_warm_start_is_cold_for_depth_images_and_icp_for_clouds(lidar_probl
     assert cfg.warm_start.method == "auto"
     write_rgbd_dataset(tmp_path, num_trajectories=1, frames=3, seed=2)
     depth = load_rgbd(tmp_path / "traj_000", stride=4)
+    np.testing.assert_array_equal(warm_start_poses(depth, cfg), baseline_poses(depth, cfg, "icp-planar"))
+    depth.pose_dof = 6  # 6-DoF depth images: a cold start
     np.testing.assert_array_equal(warm_start_poses(depth, cfg), np.tile(np.eye(4), (3, 1, 1)))
     clouds = warm_start_poses(lidar_problem, cfg)  # incremental ICP: close to the truth
     from deepmapping.core.metrics3d import ate_3d

@@ -33,7 +33,8 @@ def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | 
              resume: bool = False, on_log: Callable[[dict], None] | None = None,
              on_epoch: Callable[[int, int, float], None] | None = None,
              on_icp_progress: Callable[[int, int], None] | None = None) -> Result:
-    """Register the scans with ``config.method`` (deepmapping, direct, icp-point, icp-plane, multiway).
+    """Register the scans with ``config.method`` (deepmapping, direct, icp-point, icp-plane,
+    icp-planar, multiway, loop-closure).
 
     With no config: the "default" profile for 2D scans, "default-3d" for 3D ones.
     """
@@ -53,17 +54,28 @@ def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | 
     return _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch)
 
 
-BASELINES = ("icp-point", "icp-plane", "multiway")
+BASELINES = ("icp-point", "icp-plane", "icp-planar", "multiway", "loop-closure")
 
 
 def baseline_poses(scans: ScanSet, cfg: Config, method: str, init=None, progress=None) -> np.ndarray:
     """Classic registration: incremental ICP (2D: ours; 3D: Open3D) or multiway registration (3D)."""
     if not scans.is_3d:
-        if method == "multiway":
-            raise ConfigError("multiway registration is implemented for 3D scans only")
-        return incremental_icp(scans, cfg, method, progress)
+        if method in ("multiway", "icp-planar"):
+            raise ConfigError(f"{method} is implemented for 3D scans only")
+        if method == "loop-closure":
+            return loop_closure_poses(scans, cfg, init, progress)
+        return incremental_icp(scans, cfg, method, progress, init)
+    if method == "loop-closure":
+        raise ConfigError("loop-closure is implemented for 2D scans only (3D: multiway)")
     clouds = [p[v].astype(np.float64) for p, v in zip(scans.points, scans.valid)]
     opts = {"voxel_size": cfg.icp.voxel_size, "max_correspondence_distance": cfg.icp.max_correspondence_distance}
+    if method == "icp-planar":
+        if scans.pose_dof != 3:
+            raise ConfigError("icp-planar estimates planar [x, z, theta] poses: it needs 3-DoF scans (pose_dof 3)")
+        from deepmapping.core.icp_planar import incremental_icp_planar
+
+        return incremental_icp_planar(clouds, init=init, yaw_hypotheses_deg=cfg.icp.yaw_hypotheses_deg,
+                                      progress=progress, **opts)
     if method == "multiway":
         from deepmapping.core.multiway import multiway_registration
 
@@ -74,19 +86,33 @@ def baseline_poses(scans: ScanSet, cfg: Config, method: str, init=None, progress
                               max_iterations=cfg.icp.max_iterations, progress=progress, **opts)
 
 
-def incremental_icp(scans: ScanSet, cfg: Config, method: str, progress=None) -> np.ndarray:
+def incremental_icp(scans: ScanSet, cfg: Config, method: str, progress=None, init=None) -> np.ndarray:
     from deepmapping.core.icp import incremental_icp as icp_chain
 
     return icp_chain(scans.points.astype(np.float64), scans.valid, method=method.removeprefix("icp-"),
+                     initial_poses=init,
                      max_iterations=cfg.icp.max_iterations,
                      max_correspondence_distance=cfg.icp.max_correspondence_distance, progress=progress)
+
+
+def loop_closure_poses(scans: ScanSet, cfg: Config, init=None, progress=None) -> np.ndarray:
+    """Incremental ICP with loop closures and pose-graph optimization (core.loop_closure), each
+    pair started from ``init`` (e.g. odometry) or from the identity."""
+    from deepmapping.core.loop_closure import close_loops
+
+    c = cfg.icp
+    guess = np.zeros((scans.num_scans, 3)) if init is None else init
+    poses, _ = close_loops(scans.points, scans.valid, guess, min_gap=c.loop_min_gap, radius=c.loop_radius,
+                           max_candidates=c.loop_max_candidates, min_overlap=c.loop_min_overlap,
+                           inlier_distance=c.loop_inlier_distance, progress=progress)
+    return poses
 
 
 def warm_start_poses(scans: ScanSet, cfg: Config, progress=None) -> np.ndarray:
     """Initial poses (§3.5): identity (cold start), incremental ICP, or a given pose file."""
     ws = cfg.warm_start
-    if ws.method == "auto":  # 3D depth images: cold start; clouds and 2D scans: point-to-plane ICP
-        ws = ws.model_copy(update={"method": "none" if scans.grid_shape is not None else "icp-plane"})
+    if ws.method == "auto":
+        ws = ws.model_copy(update={"method": auto_warm_start(scans)})
     if ws.method == "none":
         return np.tile(np.eye(4), (scans.num_scans, 1, 1)) if scans.is_3d else np.zeros((scans.num_scans, 3))
     if ws.method == "file":
@@ -101,7 +127,17 @@ def warm_start_poses(scans: ScanSet, cfg: Config, progress=None) -> np.ndarray:
         else:
             raise ConfigError("warm_start.method is 'file' but no initial pose file was given")
         return np.asarray(init, dtype=np.float64)
-    return baseline_poses(scans, cfg, ws.method, None, progress)
+    # 2D ICP starts each pair from the data's own poses (a log's odometry) when it has them
+    seed = scans.init_poses if not scans.is_3d and scans.sequence is not None else None
+    return baseline_poses(scans, cfg, ws.method, seed, progress)
+
+
+def auto_warm_start(scans: ScanSet) -> str:
+    """warm_start "auto": planar ICP for AVD-like depth images with planar poses, a cold start for
+    6-DoF depth images, point-to-plane ICP for point clouds and 2D scans."""
+    if scans.grid_shape is None:
+        return "icp-plane"
+    return "icp-planar" if scans.pose_dof == 3 else "none"
 
 
 def _read_init(path, is_3d: bool) -> np.ndarray:
@@ -197,7 +233,22 @@ def _finish(scans: ScanSet, cfg: Config, poses: np.ndarray, t0: float, init) -> 
     if scans.gt_poses is not None:
         metrics = evaluate_poses(scans, poses, cfg.eval.success_threshold)
         metrics["runtime_s"] = runtime
+    elif scans.sequence is not None and scans.sequence.relations_path is not None:
+        metrics = evaluate_relations(scans, poses) | {"runtime_s": runtime}
     return Result(method=cfg.method, poses=poses, runtime_s=runtime, config=cfg, init_poses=init, metrics=metrics)
+
+
+def evaluate_relations(scans: ScanSet, poses: np.ndarray, relations_path=None) -> dict:
+    """Kümmerle et al.'s relations metric of keyframe ``poses`` (2D), every scan of the input
+    placed from its nearest keyframe by odometry (see core.keyframes)."""
+    from deepmapping.core.relations import read_relations, score_relations
+
+    seq = scans.sequence
+    path = relations_path or (seq.relations_path if seq is not None else None)
+    if seq is None or path is None:
+        raise InputError(f"{scans.source}: no relations file to score against")
+    scores = score_relations(read_relations(path), seq.stamps, seq.poses_for_all_scans(poses))
+    return {"relations": scores, "relations_file": str(path), "unit": scans.unit}
 
 
 def evaluate_poses(scans: ScanSet, poses: np.ndarray, success_threshold: float | None = None) -> dict:
@@ -206,6 +257,8 @@ def evaluate_poses(scans: ScanSet, poses: np.ndarray, success_threshold: float |
         from deepmapping.core.metrics3d import evaluate_3d as evaluate
     else:
         from deepmapping.core.metrics import evaluate
+    from deepmapping.core.evo_metrics import evo_metrics
+
     metrics = evaluate(poses, scans.gt_poses, scans.points, scans.valid, unit_scale=scans.unit_scale,
                        success_threshold=success_threshold)
-    return metrics | {"unit": scans.unit}
+    return metrics | {"unit": scans.unit, "evo": evo_metrics(poses, scans.gt_poses, scans.unit_scale)}

@@ -15,8 +15,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from deepmapping.errors import ConfigError
 
-Method = Literal["deepmapping", "direct", "icp-point", "icp-plane", "multiway"]
-WarmStart = Literal["none", "icp-point", "icp-plane", "multiway", "file", "auto"]
+Method = Literal["deepmapping", "direct", "icp-point", "icp-plane", "icp-planar", "multiway", "loop-closure"]
+WarmStart = Literal["none", "icp-point", "icp-plane", "icp-planar", "multiway", "loop-closure", "file", "auto"]
 
 
 class _Section(BaseModel):
@@ -93,11 +93,22 @@ class ICPConfig(_Section):
     max_correspondence_distance: float | None = None  # None = adaptive to the scan scale
     voxel_size: float | None = None  # 3D: downsampling voxel before ICP / multiway (None = adaptive)
     multiway_edges: str = "all"  # 3D multiway registration: "all" pairs or "window:N"
+    # icp-planar (3-DoF AVD-like poses): yaw offsets tried per pair, the best fitness wins
+    yaw_hypotheses_deg: list[float] = [0.0, 30.0, -30.0]
+    # loop-closure (2D, long sequences; lengths in the scans' units): earlier keyframes within
+    # loop_radius of a new one and at least loop_min_gap keyframes back are matched; a match
+    # is kept when loop_min_overlap of its points lie within loop_inlier_distance
+    loop_radius: float = 4.0
+    loop_min_gap: int = 30
+    loop_max_candidates: int = 3
+    loop_min_overlap: float = 0.7
+    loop_inlier_distance: float = 0.1
 
 
 class WarmStartConfig(_Section):
-    # "auto" (3D): none for AVD-like depth images (low overlap: pairwise ICP is wrong more often
-    # than right there), icp-plane for point-cloud sequences
+    # "auto" (3D): icp-planar for AVD-like depth images with planar poses (6-DoF ICP from the
+    # identity is wrong on most of their 30 deg turns), none for 6-DoF depth images,
+    # icp-plane for point-cloud sequences
     method: WarmStart = "icp-plane"
     path: str | None = None  # initial poses file (method="file")
 

@@ -10,6 +10,27 @@ from deepmapping.errors import InputError
 
 
 @dataclass
+class FullSequence:
+    """The whole input sequence when only keyframes are registered (e.g. a CARMEN log).
+
+    stamps (S,): each scan's timestamp as written in the input (exact matching of relations);
+    timestamps (S,) the same as numbers; odometry (S, 3) [x, y, theta]; keyframes (K,) the
+    indices of the registered scans.
+    """
+
+    stamps: list[str]
+    timestamps: np.ndarray
+    odometry: np.ndarray
+    keyframes: np.ndarray
+    relations_path: str | None = None  # Kümmerle et al. relations to score against
+
+    def poses_for_all_scans(self, keyframe_poses: np.ndarray) -> np.ndarray:
+        from deepmapping.core.keyframes import poses_for_all_scans
+
+        return poses_for_all_scans(self.keyframes, keyframe_poses, self.odometry, self.timestamps)
+
+
+@dataclass
 class ScanSet:
     """K scans of N points each, in sensor frames.
 
@@ -22,6 +43,8 @@ class ScanSet:
     gt_poses / init_poses: 2D (K, 3) [x, y, theta]; 3D (K, 4, 4) sensor-to-global matrices;
         in the units of ``points``, or None.
     grid_shape: (H, W) of organized 3D scans (depth images), None otherwise.
+    sequence: the whole input when the scans are its keyframes (CARMEN logs): poses are then
+        written for every input scan.
     pose_dof: 3D only: 3 = planar poses [x, z, theta about the vertical y axis] (AVD), 6 = full.
     unit_scale: multiply a length in ``points`` units by this to report it in ``unit``
         (the authors' layout stores px/512, so unit_scale = 512 and unit = "px").
@@ -39,6 +62,7 @@ class ScanSet:
     source: str = "<memory>"
     grid_shape: tuple[int, int] | None = None
     pose_dof: int = 3
+    sequence: FullSequence | None = None  # every scan of the input, when these are keyframes
 
     @property
     def num_scans(self) -> int:

@@ -24,8 +24,10 @@ def run_evaluate(run_dir: Path, gt: Path | None = None) -> dict:
         raise InputError(f"{info_path}: corrupt run description") from None
     if not (run_dir / "poses.npy").is_file():
         raise InputError(f"{run_dir}: run has no poses.npy (unfinished or interrupted?)")
-    scans = load_scans(info["data"], fmt=info.get("format"), gt_path=gt or info.get("gt"))
-    if scans.gt_poses is None:
+    scans = load_scans(info["data"], fmt=info.get("format"), gt_path=gt or info.get("gt"),
+                       keyframes=info.get("keyframes"))
+    relations = scans.gt_poses is None and scans.sequence is not None and scans.sequence.relations_path
+    if scans.gt_poses is None and not relations:
         raise InputError(f"{info['data']}: no ground truth known; pass --gt FILE")
     if scans.is_3d:
         from deepmapping.io.poses3d import read_poses_3d
@@ -36,7 +38,12 @@ def run_evaluate(run_dir: Path, gt: Path | None = None) -> dict:
     if poses.shape != (scans.num_scans, *scans.pose_shape()):
         raise InputError(f"{run_dir / 'poses.npy'}: {poses.shape[0]} poses for {scans.num_scans} scans")
     cfg = load_config("default", run_dir / "config.yaml") if (run_dir / "config.yaml").exists() else load_config()
-    metrics = evaluate_poses(scans, poses, cfg.eval.success_threshold)
+    if relations:
+        from deepmapping.api import evaluate_relations
+
+        metrics = evaluate_relations(scans, poses)
+    else:
+        metrics = evaluate_poses(scans, poses, cfg.eval.success_threshold)
     metrics |= {"method": info.get("method", "?"), "runtime_s": info.get("runtime_s")}
     write_json(run_dir / "metrics.json", metrics)
     return metrics

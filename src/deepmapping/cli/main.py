@@ -13,7 +13,8 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
                   help="DeepMapping: register many 2D laser scans or 3D point clouds into one map by training an "
                        "L-Net and an M-Net.")
 
-METHODS = "deepmapping | direct | icp-point | icp-plane | multiway (3D)"
+METHODS = ("deepmapping | direct | icp-point | icp-plane | loop-closure (2D logs) | icp-planar (3D, planar poses) "
+           "| multiway (3D)")
 
 
 @app.command(epilog="Examples:\n\n  deepmapping simulate data/traj0 --poses 256 --seed 3\n\n"
@@ -75,9 +76,11 @@ def _simulate_3d(out: Path, kind: str, trajectories: int, frames: int, seed: int
 @app.command(epilog="Examples:\n\n  deepmapping register data/traj0 --out runs/dm\n\n"
                     "  deepmapping register data/traj0 --method icp-plane --out runs/icp\n\n"
                     "  deepmapping register data/traj0 --profile paper --set optim.epochs=500\n\n"
-                    "  deepmapping register data/traj0 --out runs/dm --resume   # after Ctrl-C")
+                    "  deepmapping register data/traj0 --out runs/dm --resume   # after Ctrl-C\n\n"
+                    "  deepmapping register ../shared/data/carmen/fr079.clf.bz2 --warm-start file --keyframes motion:0.5,15")
 def register(
-    data: Path = typer.Argument(..., help="Scan folder (authors' layout, or .pcd/.ply/.npy scans)."),
+    data: Path = typer.Argument(..., help="Scan folder (authors' layout, .pcd/.ply/.npy scans, depth images, 3DTK) "
+                                "or a CARMEN log (.clf/.log, .gz/.bz2)."),
     method: str = typer.Option("deepmapping", help=METHODS),
     out: Optional[Path] = typer.Option(None, help="Run folder (default: runs/<timestamp>_<method>)."),
     profile: str = typer.Option("default", help="default (fast) | paper (§4.1 / §4.2 exactly); 3D data "
@@ -89,6 +92,8 @@ def register(
     init: Optional[Path] = typer.Option(None, help="Initial poses file (warm start), in the scans' units."),
     gt: Optional[Path] = typer.Option(None, help="Ground-truth poses (overrides the folder's own)."),
     format: Optional[str] = typer.Option(None, "--format", help="Loader name (default: picked from the path)."),
+    keyframes: Optional[str] = typer.Option(None, help="Logs (CARMEN): which scans to register: all | every:K | "
+                                            "motion:METRES,DEGREES | time:SECONDS (default motion:0.5,15)."),
     device: Optional[str] = typer.Option(None, help="auto | cpu | cuda."),
     seed: Optional[int] = typer.Option(None, help="Seed (fixes everything)."),
     resume: bool = typer.Option(False, help="Continue an interrupted run in --out from its checkpoint."),
@@ -97,7 +102,7 @@ def register(
     """Register scans with DeepMapping or a baseline and write poses, map, pictures, metrics."""
     from deepmapping.cli import register_cmd
     from deepmapping.cli.common import parse_sets
-    from deepmapping.cli.report import metrics_table
+    from deepmapping.cli.report import print_metrics
     from deepmapping.cli.progress import console
     from deepmapping.tools.run_dir import default_run_dir
 
@@ -111,9 +116,10 @@ def register(
                                                       device, seed, sets, is_3d)
         cfg(False)  # a bad setting fails before any data is read
     out = out or default_run_dir(method)
-    scans, result = register_cmd.run_register(data, out, cfg, format, gt, resume, plots=not no_plots)
+    scans, result = register_cmd.run_register(data, out, cfg, format, gt, resume, plots=not no_plots,
+                                              keyframes=keyframes)
     if result.metrics:
-        console.print(metrics_table({result.method: result.metrics}))
+        print_metrics(console, {result.method: result.metrics})
     typer.echo(f"results in {out}")
 
 
@@ -125,10 +131,10 @@ def evaluate(
     """Evaluate a run against ground truth: ATE, point distance, success; writes metrics.json."""
     from deepmapping.cli.evaluate_cmd import run_evaluate
     from deepmapping.cli.progress import console
-    from deepmapping.cli.report import metrics_table
+    from deepmapping.cli.report import print_metrics
 
     metrics = run_evaluate(run_dir, gt)
-    console.print(metrics_table({metrics["method"]: metrics}, title=str(run_dir)))
+    print_metrics(console, {metrics["method"]: metrics}, title=str(run_dir))
 
 
 @app.command(epilog="Example:\n\n  deepmapping demo --out demo")

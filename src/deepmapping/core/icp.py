@@ -131,6 +131,7 @@ def incremental_icp(
     method: str = "point",
     init: str = "velocity",
     progress: Callable[[int, int], None] | None = None,
+    initial_poses: np.ndarray | None = None,
     **icp_kwargs,
 ) -> np.ndarray:
     """Incremental (frame-to-frame) ICP over an ordered scan sequence.
@@ -139,7 +140,9 @@ def incremental_icp(
     motions are chained with :func:`se2.chain`; pose 0 is the identity. ``init``:
     "velocity" (previous relative motion, constant-velocity guess), "identity", or "best"
     (run both, keep the higher fitness, then lower rmse). ``progress(i, K)`` is called after
-    each registered scan. Extra keyword arguments go to :func:`icp_2d`. Returns (K, 3).
+    each registered scan. ``initial_poses`` (K, 3), e.g. odometry: each pair starts from its
+    relative motion there (``init`` is then ignored) and pose 0 is ``initial_poses[0]``. Extra
+    keyword arguments go to :func:`icp_2d`. Returns (K, 3).
     """
     if init not in ("velocity", "identity", "best"):
         raise ValueError(f"init must be 'velocity', 'identity' or 'best', got {init!r}")
@@ -155,7 +158,10 @@ def incremental_icp(
     for i in range(1, k):
         src = pts[i][valid[i]]
         tgt = pts[i - 1][valid[i - 1]]
-        if init == "identity":
+        if initial_poses is not None:
+            guess = se2.relative(initial_poses[i - 1], initial_poses[i])
+            rel, _ = icp_2d(src, tgt, init=guess, method=method, **icp_kwargs)
+        elif init == "identity":
             rel, _ = icp_2d(src, tgt, init=np.zeros(3), method=method, **icp_kwargs)
         elif init == "velocity":
             rel, _ = icp_2d(src, tgt, init=prev, method=method, **icp_kwargs)
@@ -166,4 +172,5 @@ def incremental_icp(
         prev = rel
         if progress is not None:
             progress(i, k)
-    return se2.chain(rels)
+    first = None if initial_poses is None else np.asarray(initial_poses, np.float64)[0]
+    return se2.chain(rels, first)

@@ -14,6 +14,7 @@ __all__ = [
     "wrap_angle",
     "rotation",
     "to_matrix",
+    "to_se3",
     "from_matrix",
     "compose",
     "inverse",
@@ -57,6 +58,16 @@ def to_matrix(poses) -> np.ndarray:
     m[..., 0, 2] = p[..., 0]
     m[..., 1, 2] = p[..., 1]
     m[..., 2, 2] = 1.0
+    return m
+
+
+def to_se3(poses) -> np.ndarray:
+    """(..., 3) planar poses [x, y, theta] -> (..., 4, 4) (z = 0, rotation about z)."""
+    m2 = to_matrix(poses)
+    m = np.zeros(m2.shape[:-2] + (4, 4), dtype=np.float64)
+    m[..., :2, :2] = m2[..., :2, :2]
+    m[..., :2, 3] = m2[..., :2, 2]
+    m[..., 2, 2] = m[..., 3, 3] = 1.0
     return m
 
 

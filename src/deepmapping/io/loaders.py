@@ -255,6 +255,7 @@ def load_scans(
     fmt: str | None = None,
     gt_path: str | os.PathLike | None = None,
     init_path: str | os.PathLike | None = None,
+    keyframes: str | None = None,
 ) -> ScanSet:
     """Load scans from ``path`` with the loader ``fmt`` (auto-detected when None).
 
@@ -263,6 +264,8 @@ def load_scans(
     is in the units of the scan points.
     init_path: initial poses (warm start), text ``x y theta`` / .npy / .mat (K, 3), always
     in the SAME units as the scan points (for the authors' layout: px/512, not px).
+    keyframes: for sequences read from one log (CARMEN), which scans to register
+    (see :mod:`deepmapping.core.keyframes`); other formats refuse it.
     Returns a validated ScanSet (names = file names, source = folder path); every problem
     raises InputError (``"<path>: <problem>"``), an unknown ``fmt`` raises ConfigError.
     """
@@ -273,10 +276,16 @@ def load_scans(
         raise ConfigError(f"{path}: unknown scan format {fmt!r} (known: {', '.join(sorted(LOADERS))})")
     else:
         _check_exists(path)
+    extra = {}
+    if keyframes is not None:
+        if fmt not in KEYFRAME_FORMATS:
+            raise ConfigError(f"{path}: keyframes apply to log formats ({', '.join(KEYFRAME_FORMATS)}), not {fmt!r}")
+        extra["keyframes"] = keyframes
     return LOADERS[fmt](
         path,
         Path(gt_path) if gt_path is not None else None,
         Path(init_path) if init_path is not None else None,
+        **extra,
     )
 
 
@@ -294,3 +303,5 @@ register_loader("rgbd", _lazy("rgbd", "load_rgbd"), _lazy("rgbd", "is_rgbd_folde
 register_loader("lidar", _lazy("lidar", "load_lidar"), _lazy("lidar", "is_lidar_folder"))
 register_loader("bunny", _lazy("bunny", "load_bunny"), _lazy("bunny", "is_bunny_folder"))
 register_loader("3dtk", _lazy("threedtk", "load_3dtk"), _lazy("threedtk", "is_3dtk_folder"))
+register_loader("carmen", _lazy("carmen", "load_carmen"), _lazy("carmen", "is_carmen_file"))
+KEYFRAME_FORMATS = ("carmen",)

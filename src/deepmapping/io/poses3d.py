@@ -151,12 +151,16 @@ def write_kitti_poses(path: str | os.PathLike, poses) -> None:
 
 
 def write_tum_poses(path: str | os.PathLike, poses, timestamps=None) -> None:
-    """Write (K, 4, 4) poses as TUM text; timestamps default to the frame index."""
+    """Write (K, 4, 4) poses as TUM text, full precision; timestamps default to the frame index
+    (strings are written as given, e.g. a log's timestamps, so they match exactly)."""
     arr = _as_poses(poses)
-    ts = np.arange(len(arr), dtype=np.float64) if timestamps is None else np.asarray(timestamps, float)
+    ts = list(range(len(arr))) if timestamps is None else list(timestamps)
+    if len(ts) != len(arr):
+        raise ValueError(f"{len(ts)} timestamps for {len(arr)} poses")
     q = se3.to_xyz_quat(arr)
     lines = ["# timestamp tx ty tz qx qy qz qw"]
-    lines += [" ".join(f"{v:.17g}" for v in (t, *row)) for t, row in zip(ts, q)]
+    lines += [" ".join([t if isinstance(t, str) else f"{t:.17g}"] + [f"{v:.17g}" for v in row])
+              for t, row in zip(ts, q)]
     _write_text(path, lines)
 
 

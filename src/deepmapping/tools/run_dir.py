@@ -1,6 +1,6 @@
 """Everything a run writes into its folder, each file written atomically.
 
-poses.npy / poses.txt, map.ply, map.png, occupancy.png, curves.png, history.csv,
+poses.npy / poses.txt / poses_kitti.txt / poses_tum.txt (and all_scans_* for keyframed logs), map.ply, map.png, occupancy.png, curves.png, history.csv,
 config.yaml, run.json and (when ground truth is known) metrics.json. The checkpoint
 (checkpoint.pt) is written by the trainer while it runs.
 """
@@ -43,6 +43,7 @@ def write_run(out: Path, scans: ScanSet, result: Result, data_info: dict, plots:
     out.mkdir(parents=True, exist_ok=True)
     write_poses_npy(out / "poses.npy", result.poses)
     write_pose_text(out / "poses.txt", result.poses)
+    _write_trajectories(out, scans, result.poses)
     write_config(out, result.config)
     write_json(out / "run.json", {"method": result.method, "runtime_s": result.runtime_s,
                                   "num_scans": scans.num_scans, "unit": scans.unit,
@@ -55,6 +56,27 @@ def write_run(out: Path, scans: ScanSet, result: Result, data_info: dict, plots:
     if plots:
         _write_pictures(out, scans, result)
     return sorted(p for p in out.iterdir() if p.is_file() and not p.name.startswith("."))
+
+
+def _write_trajectories(out: Path, scans: ScanSet, poses: np.ndarray) -> None:
+    """KITTI and TUM files (full precision) of the registered scans; for a keyframed log also of
+    every input scan (``all_scans_*``, non-keyframes placed by odometry from their nearest
+    keyframe), with the log's own timestamps, and the keyframe indices."""
+    from deepmapping.io.poses3d import write_kitti_poses, write_tum_poses
+
+    write_kitti_poses(out / "poses_kitti.txt", se2.to_se3(poses))
+    seq = scans.sequence
+    write_tum_poses(out / "poses_tum.txt", se2.to_se3(poses), None if seq is None else list(scans.names))
+    if seq is None:
+        return
+    from deepmapping.io.poses import write_pose_text, write_poses_npy
+
+    every = seq.poses_for_all_scans(poses)
+    write_poses_npy(out / "all_scans_poses.npy", every)
+    write_pose_text(out / "all_scans_poses.txt", every)
+    write_kitti_poses(out / "all_scans_kitti.txt", se2.to_se3(every))
+    write_tum_poses(out / "all_scans_tum.txt", se2.to_se3(every), seq.stamps)
+    write_text(out / "keyframes.txt", "".join(f"{k}\n" for k in seq.keyframes))
 
 
 def _global_cloud(scans: ScanSet, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -84,7 +106,7 @@ def _write_pictures(out: Path, scans: ScanSet, result: Result) -> None:
     # show the estimate in the ground-truth frame when known (the estimate's frame is arbitrary)
     poses = result.poses if scans.gt_poses is None else align_poses_2d(result.poses, scans.gt_poses)
     title = f"{result.method}"
-    if result.metrics:
+    if result.metrics and "ate" in result.metrics:
         title += f" — ATE {result.metrics['ate']:.2f} {unit}"
     plots.plot_map(out / "map.png", scans.points, scans.valid, poses, scans.gt_poses, title=title,
                    unit=unit, unit_scale=scale, invert_y=flip)

@@ -1,0 +1,98 @@
+"""Loop closures for long 2D sequences: incremental scan matching + pose-graph optimization.
+
+DeepMapping alone does not close loops of metres (its loss basin is a fraction of a metre),
+and its authors' follow-up, DeepMapping2 (CVPR 2023), brings in loop closures and pairwise
+registrations. This is that ingredient, in the classic incremental form: keyframes are added
+in order; each is matched by ICP to its predecessor (started from odometry) and to a local
+submap around up to ``max_candidates`` earlier keyframes near its current estimate (at least
+``min_gap`` keyframes back); a match is kept when at least ``min_overlap`` of the scan's
+points fall within ``inlier_distance`` of the submap; each kept loop closure triggers a
+pose-graph optimization (:mod:`deepmapping.core.pose_graph_2d`), so drift is removed before
+the next keyframe looks for its neighbours. The result warm-starts DeepMapping, and its
+edges feed DeepMapping's loop-closure consistency term.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from deepmapping.core import se2
+from deepmapping.core.icp import icp_2d
+from deepmapping.core.pose_graph_2d import Edge, optimize_pose_graph
+
+__all__ = ["close_loops"]
+
+
+def _submap(points, valid, poses, center, half_width):
+    lo, hi = max(center - half_width, 0), min(center + half_width + 1, len(points))
+    parts = [se2.transform_points(se2.relative(poses[center], poses[m]), points[m][valid[m]]) for m in range(lo, hi)]
+    return np.concatenate(parts)
+
+
+def _overlap(src, tgt_tree, pose, distance):
+    d, _ = tgt_tree.query(se2.transform_points(pose, src), distance_upper_bound=distance)
+    return float(np.isfinite(d).mean())
+
+
+def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float = 4.0, max_candidates: int = 3,
+                min_overlap: float = 0.7, inlier_distance: float = 0.1, submap_half_width: int = 2,
+                progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, list[Edge]]:
+    """Poses (K, 3) after loop closing, and the pose-graph edges (sequential and loop closures).
+
+    points (K, N, 2) and valid (K, N) in metres; init_poses (K, 3): odometry (or any guess),
+    whose relative motions start the sequential matches.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    valid = np.asarray(valid, dtype=bool)
+    init = np.asarray(init_poses, dtype=np.float64)
+    k = len(pts)
+    poses = init[:1].copy()
+    edges: list[Edge] = []
+    for n in range(1, k):
+        guess = se2.relative(init[n - 1], init[n])
+        rel, _ = icp_2d(pts[n][valid[n]], pts[n - 1][valid[n - 1]], init=guess, method="point")
+        edges.append(Edge(n - 1, n, rel))
+        poses = np.vstack([poses, se2.compose(poses[-1], rel)])
+        closed = False
+        for j in _candidates(poses, n, min_gap, radius, max_candidates):
+            edge = _match(pts, valid, poses, j, n, submap_half_width, radius, min_overlap, inlier_distance)
+            if edge is not None:
+                edges.append(edge)
+                closed = True
+        if closed:
+            poses = optimize_pose_graph(poses, edges)
+        if progress is not None:
+            progress(n, k - 1)
+    return optimize_pose_graph(poses, edges), edges
+
+
+def _candidates(poses, n, min_gap, radius, max_candidates):
+    if n < min_gap:
+        return []
+    old = poses[: n - min_gap + 1]
+    d = np.hypot(*(old[:, :2] - poses[n, :2]).T)
+    order = np.argsort(d)
+    picked: list[int] = []
+    for j in order[d[order] < radius]:
+        if all(abs(j - p) > 2 * min_gap // 3 for p in picked):  # from different visits
+            picked.append(int(j))
+        if len(picked) == max_candidates:
+            break
+    return picked
+
+
+def _match(pts, valid, poses, j, n, half_width, radius, min_overlap, inlier_distance):
+    target = _submap(pts, valid, poses, j, half_width)
+    src = pts[n][valid[n]]
+    guess = se2.relative(poses[j], poses[n])
+    coarse, _ = icp_2d(src, target, init=guess, method="point", max_correspondence_distance=radius / 2, trim=None)
+    rel, _ = icp_2d(src, target, init=coarse, method="point", max_correspondence_distance=3 * inlier_distance,
+                    trim=None)
+    if np.hypot(*(rel[:2] - guess[:2])) > radius:
+        return None
+    if _overlap(src, cKDTree(target), rel, inlier_distance) < min_overlap:
+        return None
+    return Edge(j, n, rel)

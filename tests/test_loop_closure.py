@@ -1,0 +1,90 @@
+"""Loop closures for long 2D sequences (core.loop_closure) and the 2D pose graph behind them."""
+
+import numpy as np
+import pytest
+
+from deepmapping.api import baseline_poses
+from deepmapping.config import load_config
+from deepmapping.core import se2
+from deepmapping.core.icp import incremental_icp
+from deepmapping.core.loop_closure import close_loops
+from deepmapping.core.metrics import ate
+from deepmapping.core.pose_graph_2d import Edge, optimize_pose_graph
+from deepmapping.data import ScanSet
+from deepmapping.errors import ConfigError
+from deepmapping.sim.scanner import simulate_scans
+
+PX = 0.05  # metres per pixel
+
+
+@pytest.fixture(scope="module")
+def ring():
+    """A square ring corridor with bumps on its walls, driven 1.25 times around (so the start is
+    revisited), 90 scans of 180 beams, in metres; odometry drifts 0.02 rad per step."""
+    occ = np.zeros((220, 220), bool)
+    occ[:, :4] = occ[:, -4:] = occ[:4] = occ[-4:] = True
+    rng = np.random.default_rng(0)
+    for _ in range(25):
+        x, y = rng.integers(8, 212, 2)
+        occ[y:y + 6, x:x + 6] = True
+    occ[60:160, 60:160] = True
+    corners = np.array([(30, 30), (190, 30), (190, 190), (30, 190), (30, 30)], float)
+    path = []
+    for s in np.linspace(0, 1.25, 90, endpoint=False):
+        u = (s % 1) * 4
+        side, f = int(u), u - int(u)
+        path.append(corners[side] + f * (corners[side + 1] - corners[side]))
+    path = np.array(path)
+    yy, xx = np.mgrid[:220, :220]
+    for p in path:
+        occ[(xx - p[0]) ** 2 + (yy - p[1]) ** 2 < 12 ** 2] = False
+    step = np.roll(path, -1, 0) - path
+    heading = np.arctan2(step[:, 1], step[:, 0])
+    heading[-1] = heading[-2]
+    gt = np.column_stack([path * PX, heading])
+    points, valid = simulate_scans(~occ, np.column_stack([path, heading]), num_beams=180, max_range=120)
+    rel = se2.relative(gt[:-1], gt[1:])
+    noise = np.column_stack([rng.normal(0, 0.02, len(rel)), rng.normal(0, 0.02, len(rel)),
+                             0.02 + rng.normal(0, 0.01, len(rel))])
+    odom = se2.chain(rel + noise, gt[0])
+    return points * PX, valid, gt, odom
+
+
+def test_loops_are_closed(ring):
+    points, valid, gt, odom = ring
+    icp = incremental_icp(points, valid, method="point", initial_poses=odom)
+    closed, edges = close_loops(points, valid, odom, min_gap=20, radius=3.0)
+    loops = [e for e in edges if e.j - e.i > 1]
+    assert len(loops) >= 5 and all(e.j - e.i >= 20 for e in loops)
+    assert len(edges) - len(loops) == len(gt) - 1  # one sequential edge per step
+    assert ate(odom, gt) > 1.0
+    assert ate(closed, gt) < 0.08 < ate(icp, gt) / 2, (ate(closed, gt), ate(icp, gt))
+    np.testing.assert_allclose(closed[0], odom[0])  # the first pose is the anchor
+
+
+def test_no_loop_without_revisit(ring):
+    points, valid, gt, odom = ring
+    _, edges = close_loops(points[:60], valid[:60], odom[:60], min_gap=20, radius=3.0)
+    assert all(e.j == e.i + 1 for e in edges)
+
+
+def test_pose_graph_rejects_one_wrong_edge():
+    rng = np.random.default_rng(3)
+    gt = se2.chain(rng.normal([0.5, 0.0, 0.2], 0.05, (29, 3)))
+    drifted = se2.chain(se2.relative(gt[:-1], gt[1:]) + [0.0, 0.0, 0.01], gt[0])
+    edges = [Edge(i, i + 1, se2.relative(gt[i], gt[i + 1]) + [0.0, 0.0, 0.01]) for i in range(29)]
+    edges += [Edge(0, 29, se2.relative(gt[0], gt[29])), Edge(5, 25, se2.relative(gt[5], gt[25])),
+              Edge(3, 20, se2.relative(gt[3], gt[20]) + [2.0, -1.5, 0.8])]  # the last one is wrong
+    out = optimize_pose_graph(drifted, edges)
+    without = optimize_pose_graph(drifted, edges[:-1])
+    assert ate(out, gt) < 0.6 * ate(drifted, gt)
+    assert abs(ate(out, gt) - ate(without, gt)) < 0.02  # the Cauchy loss ignores the wrong edge
+    np.testing.assert_allclose(out[0], drifted[0])
+    assert np.array_equal(optimize_pose_graph(drifted, []), drifted)
+
+
+def test_loop_closure_method_is_2d_only():
+    scans3d = ScanSet(points=np.ones((2, 5, 3), np.float32), valid=np.ones((2, 5), bool),
+                      gt_poses=None, pose_dof=6)
+    with pytest.raises(ConfigError, match="2D scans only"):
+        baseline_poses(scans3d, load_config("default-3d"), "loop-closure")
