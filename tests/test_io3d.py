@@ -13,7 +13,7 @@ from deepmapping.errors import InputError
 from deepmapping.io.bunny import bunny_pose_errors, is_bunny_folder, load_bunny, scan_centroids
 from deepmapping.io.ply import read_ply
 from deepmapping.io.threedtk import (is_3dtk_folder, load_3dtk, read_3d, read_frames, read_pose,
-                                     write_frames)
+                                     write_frames, write_pose)
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 BUNNY, TDTK = DATA / "bunny", DATA / "3dtk"
@@ -160,6 +160,16 @@ def test_frames_round_trip(tmp_path):
         b = np.loadtxt(tmp_path / f.name)
         np.testing.assert_array_equal(a, b)
         np.testing.assert_array_equal(read_frames(tmp_path / f.name), poses)
+
+
+def test_pose_round_trip(tmp_path):
+    """write_pose (loaded frame) -> read_pose (3DTK numbers) is the loader's own .pose reading."""
+    init = load_3dtk(TDTK, max_points=10).init_poses
+    for k, pose in enumerate(init):
+        write_pose(tmp_path / f"scan{k:03d}.pose", pose)
+        raw_ours = read_pose(tmp_path / f"scan{k:03d}.pose")
+        raw_theirs = read_pose(TDTK / f"scan{k:03d}.pose")
+        np.testing.assert_allclose(raw_ours, raw_theirs, atol=1e-9)
 
 
 def _tiny_3dtk(folder: Path, pose1="1 2 3\n4 5 6\n", points1="100 0 50\n0 -40 200\n"):

@@ -88,3 +88,17 @@ def test_loop_closure_method_is_2d_only():
                       gt_poses=None, pose_dof=6)
     with pytest.raises(ConfigError, match="2D scans only"):
         baseline_poses(scans3d, load_config("default-3d"), "loop-closure")
+
+
+def test_non_keyframes_matched_to_their_keyframe(ring):
+    from deepmapping.core.keyframes import poses_for_all_scans, refine_by_scan_matching
+
+    points, valid, gt, odom = ring
+    keyframes = np.arange(0, len(gt), 5)
+    t = np.arange(len(gt), dtype=float)
+    by_odometry = poses_for_all_scans(keyframes, gt[keyframes], odom, t)
+    matched = refine_by_scan_matching(by_odometry, keyframes, t, points, valid)
+    np.testing.assert_array_equal(matched[keyframes], gt[keyframes])
+    err_odo = np.hypot(*(by_odometry - gt)[:, :2].T)
+    err_icp = np.hypot(*(matched - gt)[:, :2].T)
+    assert err_icp.max() < 0.03 < err_odo.max() and err_icp.mean() < 0.3 * err_odo.mean()

@@ -25,7 +25,7 @@ def run_evaluate(run_dir: Path, gt: Path | None = None) -> dict:
     if not (run_dir / "poses.npy").is_file():
         raise InputError(f"{run_dir}: run has no poses.npy (unfinished or interrupted?)")
     scans = load_scans(info["data"], fmt=info.get("format"), gt_path=gt or info.get("gt"),
-                       keyframes=info.get("keyframes"))
+                       keyframes=info.get("keyframes"), non_keyframes=info.get("non_keyframes"))
     relations = scans.gt_poses is None and scans.sequence is not None and scans.sequence.relations_path
     if scans.gt_poses is None and not relations:
         raise InputError(f"{info['data']}: no ground truth known; pass --gt FILE")

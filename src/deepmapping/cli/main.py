@@ -94,6 +94,8 @@ def register(
     format: Optional[str] = typer.Option(None, "--format", help="Loader name (default: picked from the path)."),
     keyframes: Optional[str] = typer.Option(None, help="Logs (CARMEN): which scans to register: all | every:K | "
                                             "motion:METRES,DEGREES | time:SECONDS (default motion:0.5,15)."),
+    non_keyframes: Optional[str] = typer.Option(None, help="Logs: the other scans' poses: icp (default: "
+                                                "odometry from the nearest keyframe, then matched to it) | odometry."),
     device: Optional[str] = typer.Option(None, help="auto | cpu | cuda."),
     seed: Optional[int] = typer.Option(None, help="Seed (fixes everything)."),
     resume: bool = typer.Option(False, help="Continue an interrupted run in --out from its checkpoint."),
@@ -117,7 +119,7 @@ def register(
         cfg(False)  # a bad setting fails before any data is read
     out = out or default_run_dir(method)
     scans, result = register_cmd.run_register(data, out, cfg, format, gt, resume, plots=not no_plots,
-                                              keyframes=keyframes)
+                                              keyframes=keyframes, non_keyframes=non_keyframes)
     if result.metrics:
         print_metrics(console, {result.method: result.metrics})
     typer.echo(f"results in {out}")

@@ -39,7 +39,7 @@ def resume_config(out: Path):
 
 
 def run_register(data: Path, out: Path, cfg, fmt, gt, resume: bool, plots: bool = True, quiet: bool = False,
-                 keyframes: str | None = None):
+                 keyframes: str | None = None, non_keyframes: str | None = None):
     """cfg: a Config, or a function is_3d -> Config (the profile depends on the data)."""
     from deepmapping.io.loaders import load_scans
 
@@ -47,7 +47,8 @@ def run_register(data: Path, out: Path, cfg, fmt, gt, resume: bool, plots: bool 
     # and before torch is imported, so bad input fails fast
     cfg0 = cfg(False) if callable(cfg) else cfg
     init = cfg0.warm_start.path if cfg0.warm_start.method == "file" and not resume else None
-    scans = load_scans(data, fmt=fmt, gt_path=gt, init_path=init, keyframes=keyframes)
+    scans = load_scans(data, fmt=fmt, gt_path=gt, init_path=init, keyframes=keyframes,
+                       non_keyframes=non_keyframes)
     cfg = cfg(scans.is_3d) if callable(cfg) else cfg
     from deepmapping.api import register, resolve_device
     from deepmapping.solver.trainer import Interrupted
@@ -56,7 +57,7 @@ def run_register(data: Path, out: Path, cfg, fmt, gt, resume: bool, plots: bool 
     if cfg.method in ("deepmapping", "direct"):
         resolve_device(cfg.device)
     info = {"data": str(data.resolve()), "format": fmt, "gt": str(Path(gt).resolve()) if gt else None,
-            "keyframes": keyframes}
+            "keyframes": keyframes, "non_keyframes": non_keyframes}
     out.mkdir(parents=True, exist_ok=True)
     write_config(out, cfg)
     write_json(out / "run.json", {"method": cfg.method, "status": "running", **info})

@@ -19,7 +19,7 @@ import numpy as np
 from deepmapping.core import se2
 from deepmapping.errors import ConfigError
 
-__all__ = ["parse_keyframes", "select_keyframes", "nearest_keyframe", "poses_for_all_scans"]
+__all__ = ["parse_keyframes", "select_keyframes", "nearest_keyframe", "poses_for_all_scans", "refine_by_scan_matching"]
 
 
 def parse_keyframes(spec: str) -> tuple[str, tuple[float, ...]]:
@@ -76,4 +76,26 @@ def poses_for_all_scans(keyframes: np.ndarray, keyframe_poses: np.ndarray, odome
     motion = se2.relative(odometry[anchor], odometry)
     out = se2.compose(np.asarray(keyframe_poses, np.float64)[near], motion)
     out[keyframes] = keyframe_poses
+    return out
+
+
+def refine_by_scan_matching(poses: np.ndarray, keyframes: np.ndarray, timestamps: np.ndarray, points: np.ndarray,
+                            valid: np.ndarray, max_shift: float = 0.3, max_turn_deg: float = 5.0) -> np.ndarray:
+    """Non-keyframes placed by ICP against their nearest keyframe's scan, started from ``poses``
+    (the odometry placement); a match that moves a scan more than ``max_shift`` metres or
+    ``max_turn_deg`` from its odometry placement is not trusted (the odometry pose is kept)."""
+    from deepmapping.core.icp import icp_2d
+
+    out = np.array(poses, dtype=np.float64, copy=True)
+    near = keyframes[nearest_keyframe(keyframes, timestamps)]
+    is_key = np.zeros(len(out), bool)
+    is_key[keyframes] = True
+    for j in np.flatnonzero(~is_key):
+        k = near[j]
+        guess = se2.relative(out[k], out[j])
+        rel, info = icp_2d(points[j][valid[j]], points[k][valid[k]], init=guess, method="point")
+        change = se2.relative(guess, rel)
+        if info["fitness"] > 0.5 and np.hypot(change[0], change[1]) <= max_shift \
+                and abs(np.degrees(change[2])) <= max_turn_deg:
+            out[j] = se2.compose(out[k], rel)
     return out

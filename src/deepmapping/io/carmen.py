@@ -209,11 +209,14 @@ def relations_next_to(path: Path) -> Path | None:
     return cand if cand.is_file() else None
 
 
-def load_carmen(path: str | os.PathLike, gt_path=None, init_path=None, keyframes: str | None = None):
+def load_carmen(path: str | os.PathLike, gt_path=None, init_path=None, keyframes: str | None = None,
+                non_keyframes: str = "icp"):
     """A CARMEN log as a 2D ScanSet of its keyframes (``keyframes`` spec, see core.keyframes;
     default ``motion:0.5,15``). init_poses = the log's laser poses (odometry: the warm start);
     ``sequence`` keeps every scan (timestamps, odometry) so a pose can be written for each, and
-    the relations file next to the log (``<name>.relations``) for scoring."""
+    the relations file next to the log (``<name>.relations``) for scoring. ``non_keyframes``:
+    how the other scans get their pose, "odometry" from the nearest keyframe, or "icp" (then
+    matched to that keyframe's scan)."""
     from deepmapping.core.keyframes import select_keyframes
     from deepmapping.data import FullSequence, ScanSet
     from deepmapping.errors import ConfigError
@@ -231,8 +234,11 @@ def load_carmen(path: str | os.PathLike, gt_path=None, init_path=None, keyframes
     if len(empty):
         raise InputError(f"{path}:{log.lines[kf[empty[0]]]}: scan has no return (every range at the maximum)")
     rel = relations_next_to(path)
+    if non_keyframes not in ("odometry", "icp"):
+        raise ConfigError(f"non_keyframes must be 'odometry' or 'icp', got {non_keyframes!r}")
     seq = FullSequence(stamps=log.stamps, timestamps=log.timestamps, odometry=log.poses, keyframes=kf,
-                       relations_path=str(rel) if rel else None)
+                       relations_path=str(rel) if rel else None, points=log.points(), valid=log.valid(),
+                       placement=non_keyframes)
     return ScanSet(points=log.points()[kf].astype(np.float32), valid=valid, gt_poses=None,
                    init_poses=log.poses[kf].copy(), unit_scale=1.0, unit="m", ordered=True,
                    names=[log.stamps[k] for k in kf], source=str(path), sequence=seq)

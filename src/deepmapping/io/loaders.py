@@ -256,6 +256,7 @@ def load_scans(
     gt_path: str | os.PathLike | None = None,
     init_path: str | os.PathLike | None = None,
     keyframes: str | None = None,
+    non_keyframes: str | None = None,
 ) -> ScanSet:
     """Load scans from ``path`` with the loader ``fmt`` (auto-detected when None).
 
@@ -265,7 +266,8 @@ def load_scans(
     init_path: initial poses (warm start), text ``x y theta`` / .npy / .mat (K, 3), always
     in the SAME units as the scan points (for the authors' layout: px/512, not px).
     keyframes: for sequences read from one log (CARMEN), which scans to register
-    (see :mod:`deepmapping.core.keyframes`); other formats refuse it.
+    (see :mod:`deepmapping.core.keyframes`), and how the other scans are placed
+    (``non_keyframes``: "icp" or "odometry"); other formats refuse both.
     Returns a validated ScanSet (names = file names, source = folder path); every problem
     raises InputError (``"<path>: <problem>"``), an unknown ``fmt`` raises ConfigError.
     """
@@ -276,11 +278,9 @@ def load_scans(
         raise ConfigError(f"{path}: unknown scan format {fmt!r} (known: {', '.join(sorted(LOADERS))})")
     else:
         _check_exists(path)
-    extra = {}
-    if keyframes is not None:
-        if fmt not in KEYFRAME_FORMATS:
-            raise ConfigError(f"{path}: keyframes apply to log formats ({', '.join(KEYFRAME_FORMATS)}), not {fmt!r}")
-        extra["keyframes"] = keyframes
+    extra = {k: v for k, v in (("keyframes", keyframes), ("non_keyframes", non_keyframes)) if v is not None}
+    if extra and fmt not in KEYFRAME_FORMATS:
+        raise ConfigError(f"{path}: keyframes apply to log formats ({', '.join(KEYFRAME_FORMATS)}), not {fmt!r}")
     return LOADERS[fmt](
         path,
         Path(gt_path) if gt_path is not None else None,
@@ -304,4 +304,5 @@ register_loader("lidar", _lazy("lidar", "load_lidar"), _lazy("lidar", "is_lidar_
 register_loader("bunny", _lazy("bunny", "load_bunny"), _lazy("bunny", "is_bunny_folder"))
 register_loader("3dtk", _lazy("threedtk", "load_3dtk"), _lazy("threedtk", "is_3dtk_folder"))
 register_loader("carmen", _lazy("carmen", "load_carmen"), _lazy("carmen", "is_carmen_file"))
+register_loader("kitti", _lazy("kitti", "load_kitti"), _lazy("kitti", "is_kitti_folder"))
 KEYFRAME_FORMATS = ("carmen",)

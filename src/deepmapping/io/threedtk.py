@@ -38,7 +38,7 @@ from deepmapping.errors import InputError
 from deepmapping.io.clouds import check_max_points, pad_clouds, subsample
 from deepmapping.io.atomic import atomic_write, read_user_text
 
-__all__ = ["is_3dtk_folder", "read_3d", "read_pose", "read_frames", "write_frames", "load_3dtk"]
+__all__ = ["is_3dtk_folder", "read_3d", "read_pose", "write_pose", "read_frames", "write_frames", "load_3dtk"]
 
 _SCAN = re.compile(r"^scan(\d+)\.3d$")
 _S = np.diag([1.0, -1.0, 1.0, 1.0])  # the mirror y -> -y (its own inverse)
@@ -152,6 +152,17 @@ def write_frames(path: str | os.PathLike, poses, code=1) -> None:
         f.write("".join(lines).encode("ascii"))
 
     atomic_write(path, _write)
+
+
+def write_pose(path: str | os.PathLike, pose) -> None:
+    """Write one (4, 4) pose (loaded frame: metres, y down) as a 3DTK ``.pose`` file (line 1:
+    position in cm, line 2: θx θy θz in degrees with R = Rx·Ry·Rz), atomically."""
+    from scipy.spatial.transform import Rotation
+
+    m = _to_3dtk(np.asarray(pose, dtype=np.float64)[None])[0]
+    angles = Rotation.from_matrix(m[:3, :3]).as_euler("XYZ", degrees=True)
+    text = " ".join(f"{v + 0.0:.12g}" for v in m[:3, 3]) + "\n" + " ".join(f"{v + 0.0:.12g}" for v in angles) + "\n"
+    atomic_write(path, lambda f: f.write(text.encode("ascii")))
 
 
 def _poses(folder: Path, files: list[Path], path, suffix: str, what: str) -> np.ndarray:

@@ -60,13 +60,14 @@ def write_run_3d(out: Path, scans: ScanSet, result: Result, data_info: dict, plo
 
 def _write_3dtk_frames(out: Path, scans: ScanSet, poses: np.ndarray) -> None:
     """3DTK input: also slam6D-style ``frames/scanNNN.frames`` (one line, the final pose)."""
-    from deepmapping.io.threedtk import is_3dtk_folder, write_frames
+    from deepmapping.io.threedtk import is_3dtk_folder, write_frames, write_pose
 
     if not is_3dtk_folder(Path(scans.source)):
         return
     (out / "frames").mkdir(exist_ok=True)
     for name, pose in zip(scans.names, poses):
         write_frames(out / "frames" / f"{name}.frames", pose[None])
+        write_pose(out / "frames" / f"{name}.pose", pose)
 
 
 def _write_pictures(out: Path, scans: ScanSet, result: Result) -> None:
