@@ -368,8 +368,8 @@ def test_folder_format_mixed_pcd_ply_and_explicit_gt(tmp_path: Path) -> None:
 def test_registry_and_unknown_format(tmp_path: Path) -> None:
     _authors_folder(tmp_path)
     assert {"authors", "folder"} <= set(LOADERS)
-    with pytest.raises(ConfigError, match="unknown scan format 'kitti'"):
-        load_scans(tmp_path, fmt="kitti")
+    with pytest.raises(ConfigError, match="unknown scan format 'e57'"):
+        load_scans(tmp_path, fmt="e57")
     calls = []
     register_loader("dummy", lambda p, g, i: calls.append(p) or "ok", lambda p: (p / "DUMMY").exists())
     try:
