@@ -447,15 +447,32 @@ def test_loader_different_dimension_and_nonzero_z(tmp_path: Path) -> None:
     _npy(tmp_path, "001.npy", np.ones((4, 3)) * [1, 1, 0])
     with pytest.raises(InputError, match="001.npy: scans of different dimension"):
         load_scans(tmp_path)
-    _npy(tmp_path, "000.npy", np.ones((4, 3)))
-    with pytest.raises(InputError, match="000.npy: 3D scans are not supported yet"):
+    _npy(tmp_path, "000.npy", np.ones((4, 3)))  # non-zero z: a folder of 3D clouds
+    scans = load_scans(tmp_path)
+    assert scans.is_3d and scans.pose_dof == 6 and scans.points.shape == (2, 4, 3) and scans.gt_poses is None
+
+
+def test_folder_of_3d_clouds_with_xyz_and_poses(tmp_path: Path) -> None:
+    from deepmapping.core import se3
+    from deepmapping.io.poses3d import write_tum_poses
+
+    (tmp_path / "a.xyz").write_text("# x y z r\n1 2 3 9\n4 5 6 9\n\n7,8,9\n")
+    write_pcd(tmp_path / "b.pcd", np.array([[1.0, 0.0, 2.0], [0.0, 1.0, 3.0]]))
+    poses = np.stack([np.eye(4), se3.from_rt(np.eye(3), [1.0, 0.0, 0.0])])
+    write_tum_poses(tmp_path / "poses.txt", poses)
+    scans = load_scans(tmp_path)
+    np.testing.assert_array_equal(scans.points[0], [[1, 2, 3], [4, 5, 6], [7, 8, 9]])
+    assert scans.valid.sum(1).tolist() == [3, 2] and scans.names == ["a.xyz", "b.pcd"]
+    np.testing.assert_allclose(scans.gt_poses, poses)
+    (tmp_path / "a.xyz").write_text("1 2 3\n4 5\n")
+    with pytest.raises(InputError, match="a.xyz: line 2: expected 'x y z'"):
         load_scans(tmp_path)
 
 
 def test_authors_nonzero_z(tmp_path: Path) -> None:
     _authors_folder(tmp_path)
     write_pcd(tmp_path / "001.pcd", np.ones((16, 3)))
-    with pytest.raises(InputError, match="001.pcd: 3D scans are not supported yet"):
+    with pytest.raises(InputError, match="001.pcd: 3D scans are not supported in this layout"):
         load_scans(tmp_path)
 
 

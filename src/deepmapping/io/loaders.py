@@ -49,7 +49,7 @@ __all__ = [
 Loader = Callable[[Path, "Path | None", "Path | None"], ScanSet]
 Detector = Callable[[Path], bool]
 
-SCAN_SUFFIXES = (".pcd", ".ply", ".npy")
+SCAN_SUFFIXES = (".pcd", ".ply", ".npy", ".xyz")
 AUTHORS_GT_NAME = "gt_pose.mat"
 AUTHORS_SCALE = 512.0
 FOLDER_GT_NAMES = ("gt_pose.txt", "poses.txt")
@@ -95,7 +95,33 @@ def read_scan_file(path: Path) -> tuple[np.ndarray, int]:
         out = np.zeros((arr.shape[0], 3), dtype=np.float32)
         out[:, :dim] = arr
         return out, dim
+    if suffix == ".xyz":
+        return _read_xyz(path), 3
     raise InputError(f"{path}: unsupported scan file type {suffix!r} (expected {', '.join(SCAN_SUFFIXES)})")
+
+
+def _read_xyz(path: Path) -> np.ndarray:
+    """A text ``.xyz`` cloud: ``x y z`` per line (more columns ignored, ``#`` comments skipped)."""
+    rows = []
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except OSError as e:
+        raise InputError(f"{path}: cannot read ({e})") from None
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        tok = line.split("#", 1)[0].replace(",", " ").split()
+        if not tok:
+            continue
+        try:
+            if len(tok) < 3:
+                raise ValueError
+            rows.append([float(t) for t in tok[:3]])
+        except ValueError:
+            raise InputError(f"{path}: line {lineno}: expected 'x y z'") from None
+    return np.asarray(rows, dtype=np.float32).reshape(-1, 3)
+
+
+class _ThreeD(Exception):
+    """A scan of the folder has non-zero z: the folder holds 3D clouds."""
 
 
 def _stack_scans(folder: Path, files: list[Path]) -> tuple[np.ndarray, np.ndarray]:
@@ -115,7 +141,7 @@ def _stack_scans(folder: Path, files: list[Path]) -> tuple[np.ndarray, np.ndarra
         if not np.isfinite(xyz).all():
             raise InputError(f"{f}: contains NaN or inf coordinates")
         if np.abs(xyz[:, 2]).max() > Z_TOL:
-            raise InputError(f"{f}: 3D scans are not supported yet (non-zero z)")
+            raise _ThreeD(f"{f}: 3D scans are not supported in this layout (non-zero z)")
         if pts_list and xyz.shape[0] != pts_list[0].shape[0]:
             raise InputError(
                 f"{f}: scans of different sizes are not supported for organized 2D scans: "
@@ -150,7 +176,10 @@ def load_authors(folder: Path, gt_path: Path | None = None, init_path: Path | No
     _check_dir(folder)
     files = _scan_files(folder, (".pcd",))
     _require_scans(folder, files, "*.pcd")
-    points, valid = _stack_scans(folder, files)
+    try:
+        points, valid = _stack_scans(folder, files)
+    except _ThreeD as e:
+        raise InputError(str(e)) from None
     k = points.shape[0]
     gt = None
     gt_file = gt_path if gt_path is not None else folder / AUTHORS_GT_NAME
@@ -181,7 +210,10 @@ def load_folder(folder: Path, gt_path: Path | None = None, init_path: Path | Non
     _check_dir(folder)
     files = _scan_files(folder)
     _require_scans(folder, files, ", ".join(SCAN_SUFFIXES))
-    points, valid = _stack_scans(folder, files)
+    try:
+        points, valid = _stack_scans(folder, files)
+    except _ThreeD:
+        return _load_clouds_folder(folder, files, gt_path, init_path)
     k = points.shape[0]
     if gt_path is None:
         gt_path = next((folder / n for n in FOLDER_GT_NAMES if (folder / n).is_file()), None)
@@ -198,6 +230,32 @@ def load_folder(folder: Path, gt_path: Path | None = None, init_path: Path | Non
         unit_scale=1.0, unit="m", ordered=True,
         names=[f.name for f in files], source=str(folder),
     ).validate()
+
+
+def _load_clouds_folder(folder: Path, files: list[Path], gt_path, init_path) -> ScanSet:
+    """A folder of 3D clouds (any z != 0): unorganized 6-DoF scans, metres; poses KITTI/TUM/.npy
+    (``gt_path``, else ``poses.txt`` / ``gt_poses.txt`` in the folder)."""
+    from deepmapping.io.clouds import pad_clouds
+    from deepmapping.io.poses3d import read_poses_3d
+
+    clouds = []
+    for f in files:
+        xyz, _ = read_scan_file(f)
+        if xyz.shape[0] == 0:
+            raise InputError(f"{f}: scan has no point")
+        if not np.isfinite(xyz).all():
+            raise InputError(f"{f}: contains NaN or inf coordinates")
+        clouds.append(xyz)
+    points, valid = pad_clouds(clouds)
+    if gt_path is None:
+        gt_path = next((folder / n for n in ("poses.txt", "gt_poses.txt") if (folder / n).is_file()), None)
+    gt = read_poses_3d(gt_path) if gt_path is not None else None
+    init = read_poses_3d(init_path) if init_path is not None else None
+    for path, poses, label in ((gt_path, gt, "ground-truth poses"), (init_path, init, "initial poses")):
+        if poses is not None:
+            _check_count(path, poses, len(files), label)
+    return ScanSet(points=points, valid=valid, gt_poses=gt, init_poses=init, unit_scale=1.0, unit="m",
+                   ordered=True, names=[f.name for f in files], source=str(folder), pose_dof=6).validate()
 
 
 def _is_authors(path: Path) -> bool:
