@@ -48,7 +48,7 @@ def test_register_3d_writes_poses_cloud_occupancy_and_pictures(runs):
 
     folder, res = runs["dm"]
     ok(res)
-    for name in ("poses.npy", "poses_kitti.txt", "poses_tum.txt", "map.ply", "map.png", "occupancy.npz",
+    for name in ("poses.npy", "poses_kitti.txt", "poses_tum.txt", "map.ply", "map.pcd", "map.png", "occupancy.npz",
                  "occupancy_mesh.ply", "metrics.json", "config.yaml", "curves.png"):
         assert (folder / name).is_file() and (folder / name).stat().st_size > 0, name
     poses = read_poses_3d(folder / "poses.npy")

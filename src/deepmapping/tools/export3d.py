@@ -128,8 +128,14 @@ def registered_cloud(points, valid, poses):
 
 
 def write_registered_cloud(path: str | os.PathLike, points, valid, poses) -> None:
-    """The registered cloud as a binary PLY with one colour per scan (``scan_colors``)."""
+    """The registered cloud: binary PLY with one colour per scan (``scan_colors``), or binary PCD
+    (x y z) when ``path`` ends in .pcd."""
+    pts, index = registered_cloud(points, valid, poses)
+    if str(path).lower().endswith(".pcd"):
+        from deepmapping.io.pcd import write_pcd
+
+        write_pcd(path, pts)
+        return
     from deepmapping.io.ply import write_ply
 
-    pts, index = registered_cloud(points, valid, poses)
     write_ply(path, pts, scan_colors(len(np.asarray(points)))[index])

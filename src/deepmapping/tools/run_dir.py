@@ -1,6 +1,6 @@
 """Everything a run writes into its folder, each file written atomically.
 
-poses.npy / poses.txt / poses_kitti.txt / poses_tum.txt (and all_scans_* for keyframed logs), map.ply, map.png, occupancy.png, curves.png, history.csv,
+poses.npy / poses.txt / poses_kitti.txt / poses_tum.txt (and all_scans_* for keyframed logs), map.ply / map.pcd, map.png, occupancy.png, curves.png, history.csv,
 config.yaml, run.json and (when ground truth is known) metrics.json. The checkpoint
 (checkpoint.pt) is written by the trainer while it runs.
 """
@@ -37,6 +37,7 @@ def write_run(out: Path, scans: ScanSet, result: Result, data_info: dict, plots:
         from deepmapping.tools.run_dir3d import write_run_3d
 
         return write_run_3d(out, scans, result, data_info, plots)
+    from deepmapping.io.pcd import write_pcd
     from deepmapping.io.ply import write_ply
     from deepmapping.io.poses import write_pose_text, write_poses_npy
 
@@ -48,7 +49,9 @@ def write_run(out: Path, scans: ScanSet, result: Result, data_info: dict, plots:
     write_json(out / "run.json", {"method": result.method, "runtime_s": result.runtime_s,
                                   "num_scans": scans.num_scans, "unit": scans.unit,
                                   "unit_scale": scans.unit_scale, **data_info})
-    write_ply(out / "map.ply", *_global_cloud(scans, result.poses))
+    cloud, colors = _global_cloud(scans, result.poses)
+    write_ply(out / "map.ply", cloud, colors)
+    write_pcd(out / "map.pcd", cloud)
     if result.metrics is not None:
         write_json(out / "metrics.json", result.metrics)
     if result.history.get("iteration"):

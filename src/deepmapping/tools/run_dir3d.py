@@ -46,6 +46,7 @@ def write_run_3d(out: Path, scans: ScanSet, result: Result, data_info: dict, plo
                                   "num_scans": scans.num_scans, "unit": scans.unit,
                                   "unit_scale": scans.unit_scale, **data_info})
     write_registered_cloud(out / "map.ply", scans.points, scans.valid, result.poses)
+    write_registered_cloud(out / "map.pcd", scans.points, scans.valid, result.poses)
     _write_3dtk_frames(out, scans, result.poses)
     if result.metrics is not None:
         write_json(out / "metrics.json", result.metrics)
