@@ -172,6 +172,19 @@ def test_pose_round_trip(tmp_path):
         np.testing.assert_allclose(raw_ours, raw_theirs, atol=1e-9)
 
 
+def test_3dtk_xyz_is_read_like_3d(tmp_path):
+    """A scanNNN.xyz (right-handed, z up) holds uos (x, y, z) as (z, -x, y); 3DTK turns it back."""
+    uos = read_3d(TDTK / "scan001.3d")[:500]
+    np.savetxt(tmp_path / "scan001.xyz", np.column_stack([uos[:, 2], -uos[:, 0], uos[:, 1]]))
+    np.testing.assert_allclose(read_3d(tmp_path / "scan001.xyz"), uos, atol=1e-9)
+    (tmp_path / "scan000.xyz").write_text("100 0 0\n0 100 0\n0 0 100\n")
+    for k in (0, 1):
+        (tmp_path / f"scan{k:03d}.pose").write_text("0 0 0\n0 0 0\n")
+    assert is_3dtk_folder(tmp_path)
+    scans = load_3dtk(tmp_path, min_range=0.0)
+    np.testing.assert_allclose(scans.points[0][:3], [[0, 0, 1], [-1, 0, 0], [0, -1, 0]], atol=1e-6)  # metres, y down
+
+
 def _tiny_3dtk(folder: Path, pose1="1 2 3\n4 5 6\n", points1="100 0 50\n0 -40 200\n"):
     folder.mkdir()
     (folder / "scan000.3d").write_text("2 x 3\n100 10 100\n-100 -40 150\n")  # a header line

@@ -40,7 +40,7 @@ from deepmapping.io.atomic import atomic_write, read_user_text
 
 __all__ = ["is_3dtk_folder", "read_3d", "read_pose", "write_pose", "read_frames", "write_frames", "load_3dtk"]
 
-_SCAN = re.compile(r"^scan(\d+)\.3d$")
+_SCAN = re.compile(r"^scan(\d+)\.(3d|xyz)$")
 _S = np.diag([1.0, -1.0, 1.0, 1.0])  # the mirror y -> -y (its own inverse)
 
 
@@ -57,12 +57,15 @@ def _to_3dtk(poses_m: np.ndarray) -> np.ndarray:
 
 
 def _scan_files(folder: Path) -> list[Path]:
-    found = [(int(m.group(1)), p) for p in folder.iterdir() if (m := _SCAN.match(p.name))]
-    return [p for _, p in sorted(found)]
+    found: dict[int, Path] = {}
+    for p in folder.iterdir():
+        if (m := _SCAN.match(p.name)) and (int(m.group(1)) not in found or m.group(2) == "3d"):
+            found[int(m.group(1))] = p  # scanNNN.3d wins over scanNNN.xyz
+    return [found[k] for k in sorted(found)]
 
 
 def is_3dtk_folder(path: str | os.PathLike) -> bool:
-    """True for a folder with ``scanNNN.3d`` files, the first with its ``.pose``."""
+    """True for a folder with ``scanNNN.3d`` (or ``.xyz``) files, the first with its ``.pose``."""
     path = Path(path)
     files = _scan_files(path) if path.is_dir() else []
     return bool(files) and files[0].with_suffix(".pose").is_file()
@@ -80,7 +83,8 @@ def _is_point(line: str) -> bool:
 
 
 def read_3d(path: str | os.PathLike) -> np.ndarray:
-    """(N, 3) float64 points of a ``.3d`` file, in 3DTK's numbers (cm, left-handed)."""
+    """(N, 3) float64 points of a ``.3d`` file (uos: cm, left-handed, y up), or of a ``.xyz``
+    file (right-handed, z up) turned into uos numbers as 3DTK does: (x, y, z) -> (-y, z, x)."""
     path = Path(path)
     lines = read_user_text(path).splitlines()
     start = 0
@@ -95,6 +99,8 @@ def read_3d(path: str | os.PathLike) -> np.ndarray:
     bad = np.nonzero(~np.isfinite(pts).all(axis=1))[0]
     if len(bad):
         raise InputError(f"{path}: line {start + bad[0] + 1}: NaN or inf coordinate")
+    if path.suffix.lower() == ".xyz":
+        pts = np.column_stack([-pts[:, 1], pts[:, 2], pts[:, 0]])
     return pts
 
 
