@@ -104,7 +104,8 @@ def loop_closure_poses(scans: ScanSet, cfg: Config, init=None, progress=None) ->
     guess = np.zeros((scans.num_scans, 3)) if init is None else init
     poses, _ = close_loops(scans.points, scans.valid, guess, min_gap=c.loop_min_gap, radius=c.loop_radius,
                            max_candidates=c.loop_max_candidates, min_overlap=c.loop_min_overlap,
-                           inlier_distance=c.loop_inlier_distance, progress=progress)
+                           inlier_distance=c.loop_inlier_distance, sequential_submap=c.loop_sequential_submap,
+                           sequential_method=c.loop_sequential_method, progress=progress)
     return poses
 
 

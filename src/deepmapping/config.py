@@ -103,6 +103,8 @@ class ICPConfig(_Section):
     loop_max_candidates: int = 3
     loop_min_overlap: float = 0.7
     loop_inlier_distance: float = 0.1
+    loop_sequential_submap: int = 5  # each keyframe is matched to its last N keyframes merged
+    loop_sequential_method: Literal["point", "plane"] = "plane"
 
 
 class WarmStartConfig(_Section):

@@ -3,7 +3,8 @@
 DeepMapping alone does not close loops of metres (its loss basin is a fraction of a metre),
 and its authors' follow-up, DeepMapping2 (CVPR 2023), brings in loop closures and pairwise
 registrations. This is that ingredient, in the classic incremental form: keyframes are added
-in order; each is matched by ICP to its predecessor (started from odometry) and to a local
+in order; each is matched by ICP to a submap of its ``sequential_submap`` predecessors
+(point-to-line ICP by default, started from the odometry motion) and to a local
 submap around up to ``max_candidates`` earlier keyframes near its current estimate (at least
 ``min_gap`` keyframes back); a match is kept when at least ``min_overlap`` of the scan's
 points fall within ``inlier_distance`` of the submap; each kept loop closure triggers a
@@ -39,7 +40,7 @@ def _overlap(src, tgt_tree, pose, distance):
 
 def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float = 4.0, max_candidates: int = 3,
                 min_overlap: float = 0.7, inlier_distance: float = 0.1, submap_half_width: int = 2,
-                progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, list[Edge]]:
+                sequential_submap: int = 5, sequential_method: str = "plane", progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, list[Edge]]:
     """Poses (K, 3) after loop closing, and the pose-graph edges (sequential and loop closures).
 
     points (K, N, 2) and valid (K, N) in metres; init_poses (K, 3): odometry (or any guess),
@@ -53,7 +54,8 @@ def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float =
     edges: list[Edge] = []
     for n in range(1, k):
         guess = se2.relative(init[n - 1], init[n])
-        rel, _ = icp_2d(pts[n][valid[n]], pts[n - 1][valid[n - 1]], init=guess, method="point")
+        target = _recent(pts, valid, poses, n - 1, sequential_submap)
+        rel, _ = icp_2d(pts[n][valid[n]], target, init=guess, method=sequential_method)
         edges.append(Edge(n - 1, n, rel))
         poses = np.vstack([poses, se2.compose(poses[-1], rel)])
         closed = False
@@ -67,6 +69,13 @@ def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float =
         if progress is not None:
             progress(n, k - 1)
     return optimize_pose_graph(poses, edges), edges
+
+
+def _recent(points, valid, poses, last, count):
+    """The ``count`` keyframes up to ``last`` merged in ``last``'s frame (the scan-to-submap target)."""
+    parts = [se2.transform_points(se2.relative(poses[last], poses[m]), points[m][valid[m]])
+             for m in range(max(last - count + 1, 0), last + 1)]
+    return np.concatenate(parts)
 
 
 def _candidates(poses, n, min_gap, radius, max_candidates):
