@@ -8,7 +8,7 @@ from deepmapping.config import load_config
 from deepmapping.core import se3
 from deepmapping.core.icp3d import default_scales, prepare_clouds
 from deepmapping.core.icp_planar import incremental_icp_planar, planar_params, register_pair_planar
-from deepmapping.data import ScanSet
+from deepmapping.data import FullSequence, ScanSet
 from deepmapping.errors import ConfigError
 from deepmapping.sim.rgbd import Intrinsics, render_depth
 from deepmapping.sim.scene3d import make_scene
@@ -85,6 +85,9 @@ def test_auto_warm_start_and_errors():
     assert auto_warm_start(_scans(3, True, 6)) == "none"
     assert auto_warm_start(_scans(3, False, 6)) == "icp-plane"
     assert auto_warm_start(_scans(2, False, 3)) == "icp-plane"
+    log = _scans(2, False, 3)
+    log.sequence = FullSequence(["0", "1"], np.zeros(2), np.zeros((2, 3)), np.arange(2))
+    assert auto_warm_start(log) == "loop-closure"
     cfg = load_config("default-3d")
     with pytest.raises(ConfigError, match="3-DoF"):
         baseline_poses(_scans(3, True, 6), cfg, "icp-planar")

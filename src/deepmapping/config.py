@@ -111,7 +111,8 @@ class WarmStartConfig(_Section):
     # "auto" (3D): icp-planar for AVD-like depth images with planar poses (6-DoF ICP from the
     # identity is wrong on most of their 30 deg turns), none for 6-DoF depth images,
     # icp-plane for point-cloud sequences
-    method: WarmStart = "icp-plane"
+    # 2D: icp-plane for scans, loop-closure for keyframed logs (CARMEN)
+    method: WarmStart = "auto"
     path: str | None = None  # initial poses file (method="file")
 
 
