@@ -1,4 +1,4 @@
-"""The `deepmapping` command: simulate, register, evaluate, demo."""
+"""The `deepmapping` command: simulate, register, evaluate, experiment, demo."""
 
 from __future__ import annotations
 
@@ -139,6 +139,26 @@ def evaluate(
 
     metrics = run_evaluate(run_dir, gt)
     print_metrics(console, {metrics["method"]: metrics}, title=str(run_dir))
+
+
+@app.command(epilog="Examples:\n\n  deepmapping experiment 1d --out exp/1d\n\n"
+                    "  deepmapping experiment 2d --quick --out exp/2d_quick\n\n"
+                    "  deepmapping experiment 2d --out exp/2d --jobs 8\n\n"
+                    "  deepmapping experiment avd --out exp/avd --cluster tcp://scheduler:8786")
+def experiment(
+    name: str = typer.Argument(..., help="2d | avd | relocalization | warm-start | ablations | 1d"),
+    out: Path = typer.Option(..., help="Folder for the runs, pictures and report.md (rerun to resume)."),
+    quick: bool = typer.Option(False, "--quick", help="A small size that runs in minutes on 2 CPU cores."),
+    jobs: Optional[int] = typer.Option(None, help="Runs at a time on this machine (default: one per core)."),
+    threads: int = typer.Option(1, help="Torch threads per run."),
+    cluster: Optional[str] = typer.Option(None, help="Dask scheduler address (tcp://host:8786), or 'local' for a "
+                                          "local Dask cluster; needs pip install 'deepmapping[cluster]'."),
+    retries: int = typer.Option(1, help="Times a failed run is retried before it is reported."),
+):
+    """Reproduce one of the paper's experiments: independent runs in parallel, then a markdown report."""
+    from deepmapping.cli.experiment_cmd import run_experiment_cli
+
+    run_experiment_cli(name, out, quick, jobs, threads, cluster, retries)
 
 
 @app.command(epilog="Example:\n\n  deepmapping demo --out demo")

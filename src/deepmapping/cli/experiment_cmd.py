@@ -1,0 +1,33 @@
+"""`deepmapping experiment`: a sweep with a progress bar, then where the report is."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+
+def run_experiment_cli(name: str, out: Path, quick: bool, jobs: int | None, threads: int, cluster: str | None,
+                       retries: int) -> None:
+    from deepmapping.cli.progress import console
+    from deepmapping.experiments import experiment_module
+    from deepmapping.experiments.runner import run_experiment
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    experiment_module(name)  # an unknown name fails before anything is written
+    columns = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+               TextColumn("{task.fields[info]}"), TimeElapsedColumn()]
+    with Progress(*columns, console=console) as bar:
+        task = bar.add_task(f"experiment {name}", total=None, info="")
+
+        def progress(done: int, total: int, key: str) -> None:
+            bar.update(task, completed=done, total=total, info=key)
+
+        outcome = run_experiment(name, out, quick=quick, workers=jobs, threads=threads, cluster=cluster,
+                                 retries=retries, progress=progress)
+    n_err = len(outcome["errors"])
+    if n_err:
+        console.print(f"[yellow]{n_err} run(s) failed[/] (listed in the report); rerun the same command to retry them")
+    typer.echo(f"report: {outcome['report']} ({outcome['wall_s']:.0f} s)")
+    if n_err:
+        raise typer.Exit(1)

@@ -1,0 +1,32 @@
+"""A sweep's unit of work: one call of a plain function, identified by a key."""
+
+from __future__ import annotations
+
+import importlib
+import re
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True)
+class Job:
+    """``func`` ("package.module:function") called with ``kwargs`` returns a JSON-able dict.
+
+    ``key`` names the run (its result file is ``runs/<key>.json``): letters, digits, ``-_.=``.
+    """
+
+    key: str
+    func: str
+    kwargs: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if not re.fullmatch(r"[A-Za-z0-9_.=-]+", self.key):
+            raise ValueError(f"job key {self.key!r}: use letters, digits and -_.= only")
+
+
+def call_job(func: str, kwargs: dict, threads: int = 1) -> dict:
+    """Run one job in this process (the worker side of every executor)."""
+    import torch
+
+    torch.set_num_threads(threads)
+    module, name = func.split(":")
+    return getattr(importlib.import_module(module), name)(**kwargs)

@@ -1,0 +1,37 @@
+"""``run_experiment``: the jobs of an experiment through the sweep, then its report."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+from deepmapping.experiments import experiment_module
+from deepmapping.experiments.sweep import run_sweep
+from deepmapping.io.atomic import atomic_write
+
+
+def run_experiment(name: str, out: str | Path, *, quick: bool = False, workers: int | None = None,
+                   threads: int = 1, cluster: str | None = None, retries: int = 1, progress=None) -> dict:
+    """Run experiment ``name`` into ``out``; return {"report", "results", "errors", "wall_s"}.
+
+    Finished runs in ``out/runs`` are kept and not redone; the report is rewritten from all
+    results each time (runs that failed are listed in it).
+    """
+    module = experiment_module(name)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = module.jobs(quick)
+    t0 = time.perf_counter()
+    results, errors = run_sweep(jobs, out, workers=workers, threads=threads, cluster=cluster, retries=retries,
+                                progress=progress)
+    wall = time.perf_counter() - t0
+    settings = {"experiment": name, "quick": quick, "jobs": len(jobs), "workers": workers, "threads": threads,
+                "cluster": cluster, "sweep_wall_s": wall, "failed": sorted(errors)}
+    atomic_write(out / "experiment.json", lambda f: f.write(json.dumps(settings, indent=1).encode()))
+    report = module.report(out, results, quick)
+    if errors:
+        lines = "\n".join(f"- `{k}`: {msg} (runs/{k}.failed.json)" for k, msg in sorted(errors.items()))
+        with open(report, "a") as f:
+            f.write(f"\n## Failed runs ({len(errors)} of {len(jobs)})\n\n{lines}\n")
+    return {"report": report, "results": results, "errors": errors, "wall_s": wall}
