@@ -426,3 +426,17 @@ def test_ctrl_c_saves_checkpoint_and_resume_finishes(data16, tmp_path):
     assert np.any((epochs > 0) & (epochs <= stopped_at)), "history lost the epochs before Ctrl-C"
     assert np.any(epochs > stopped_at)
     assert yaml.safe_load((out / "config.yaml").read_text())["optim"]["epochs"] == CTRL_C_EPOCHS
+
+
+def test_experiment_command_runs_resumes_and_refuses_unknown_names(tmp_path):
+    out = tmp_path / "exp1d"
+    res = ok(dm("experiment", "1d", "--quick", "--out", out, "--jobs", "1", timeout=300))
+    assert "report:" in res.stdout
+    report = (out / "report.md").read_text()
+    assert "![" in report and (out / "experiment.json").exists() and list((out / "runs").glob("*.json"))
+    first = {p.name: p.stat().st_mtime_ns for p in (out / "runs").glob("*.json")}
+    ok(dm("experiment", "1d", "--quick", "--out", out, "--jobs", "1", timeout=300))  # resumed: nothing redone
+    assert {p.name: p.stat().st_mtime_ns for p in (out / "runs").glob("*.json")} == first
+    bad = dm("experiment", "nope", "--out", tmp_path / "nope")
+    assert_one_line_error(bad, "nope")
+    assert not (tmp_path / "nope").exists()

@@ -102,3 +102,54 @@ def test_non_keyframes_matched_to_their_keyframe(ring):
     err_odo = np.hypot(*(by_odometry - gt)[:, :2].T)
     err_icp = np.hypot(*(matched - gt)[:, :2].T)
     assert err_icp.max() < 0.03 < err_odo.max() and err_icp.mean() < 0.3 * err_odo.mean()
+
+
+def test_odometry_prior_holds_the_unobservable_corridor_direction():
+    """Point-to-line ICP in a straight corridor with one weak feature slides along it; with the
+    odometry prior the along-corridor offset stays near the odometry guess while the
+    cross-corridor offset is still corrected from the scans."""
+    from deepmapping.core.icp import icp_2d
+
+    rng = np.random.default_rng(1)
+    xs = np.linspace(-5, 5, 400)
+    walls = np.concatenate([np.column_stack([xs, np.full_like(xs, -1.0)]), np.column_stack([xs, np.full_like(xs, 1.0)])])
+    target = walls + rng.normal(0, 0.01, walls.shape)
+    source = walls + rng.normal(0, 0.01, walls.shape)
+    guess = np.array([0.2, 0.15, 0.0])  # truth is the identity
+    free, _ = icp_2d(source, target, init=guess, method="plane")
+    held, _ = icp_2d(source, target, init=guess, method="plane", prior_sigma=(0.1, np.radians(5)))
+    loose, _ = icp_2d(source, target, init=guess, method="plane", prior_sigma=(1e6, 1e6))
+    assert abs(held[1]) < 0.02 and abs(free[1]) < 0.02  # across: observed
+    assert abs(held[0] - 0.2) < 0.02  # along: the prior's value
+    assert np.allclose(loose, free, atol=1e-3)  # a negligible prior changes nothing
+    tight, _ = icp_2d(source, target, init=guess, method="plane", prior_sigma=(1e-6, 1e-6))
+    assert np.allclose(tight, guess, atol=1e-3)  # an overwhelming prior keeps the guess
+    with pytest.raises(ValueError):
+        icp_2d(source, target, method="point", prior_sigma=(0.1, 0.1))
+
+
+def test_constraint_is_low_in_a_corridor_and_high_in_a_room():
+    from scipy.spatial import cKDTree
+
+    from deepmapping.core.loop_closure import _constraint
+
+    xs = np.linspace(-5, 5, 300)
+    corridor = np.concatenate([np.column_stack([xs, np.full_like(xs, -1.0)]), np.column_stack([xs, np.full_like(xs, 1.0)])])
+    ys = np.linspace(-3, 3, 200)
+    room = np.concatenate([np.column_stack([xs[::2] * 0.6, np.full(150, -3.0)]), np.column_stack([xs[::2] * 0.6, np.full(150, 3.0)]),
+                           np.column_stack([np.full_like(ys, -3.0), ys]), np.column_stack([np.full_like(ys, 3.0), ys])])
+    ident = np.zeros(3)
+    assert _constraint(corridor, corridor, cKDTree(corridor), ident, 0.1) < 0.05
+    assert _constraint(room, room, cKDTree(room), ident, 0.1) > 0.5
+
+
+def test_sequential_match_recovers_an_odometry_jump(ring):
+    """An odometry step a metre off (wheel slip) is recovered: the coarse-to-fine hypothesis wins."""
+    from deepmapping.core.loop_closure import _sequential
+
+    points, valid, gt, _ = ring
+    poses = gt[:6].copy()
+    truth = se2.relative(gt[4], gt[5])
+    guess = truth + np.array([0.8, -0.5, 0.05])
+    rel = _sequential(points, valid, poses, 5, guess, 5, "plane", (0.1, 5.0), 4.0, 0.1)
+    assert np.hypot(*(rel[:2] - truth[:2])) < 0.05 and abs(rel[2] - truth[2]) < np.radians(1)

@@ -27,6 +27,8 @@ class Result:
     metrics: dict | None = None
     history: dict = field(default_factory=dict)
     occupancy: Callable[[np.ndarray], np.ndarray] | None = None  # M-Net: (M, D) -> p(occupied)
+    # trained L-Net (DeepMapping only): (points (M, N, D), valid (M, N), init=None) -> poses of new scans
+    localize: Callable[..., np.ndarray] | None = None
 
 
 def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | Path | None = None,
@@ -105,7 +107,9 @@ def loop_closure_poses(scans: ScanSet, cfg: Config, init=None, progress=None) ->
     poses, _ = close_loops(scans.points, scans.valid, guess, min_gap=c.loop_min_gap, radius=c.loop_radius,
                            max_candidates=c.loop_max_candidates, min_overlap=c.loop_min_overlap,
                            inlier_distance=c.loop_inlier_distance, sequential_submap=c.loop_sequential_submap,
-                           sequential_method=c.loop_sequential_method, progress=progress)
+                           sequential_method=c.loop_sequential_method,
+                           odometry_sigma=tuple(c.loop_odometry_sigma) or None,
+                           min_constraint=c.loop_min_constraint, progress=progress)
     return poses
 
 
@@ -217,6 +221,8 @@ def _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch) -> Result:
     result = _finish(scans, cfg, poses, t0, init=init)
     result.history = trainer.state.history
     result.occupancy = _occupancy_fn(model, frame, device)
+    if model.direct_poses is None:
+        result.localize = _localize_fn(model, frame, device)
     return result
 
 
@@ -229,6 +235,36 @@ def _occupancy_fn(model, frame, device):
             return torch.cat([torch.sigmoid(model.mnet(q[i : i + chunk])) for i in range(0, max(len(q), 1), chunk)]).cpu().numpy()
 
     return occupancy
+
+
+def _localize_fn(model, frame, device):
+    """``localize(points, valid=None, init=None) -> poses``: the trained L-Net on new scans.
+
+    points (M, N, D) in sensor frames and the input's units (as ``ScanSet.points``), valid
+    (M, N) (None = all beams valid); returns poses in the input's units, as ``Result.poses``.
+    ``init``: each scan's prior pose, composed with the L-Net's output as in training
+    (T = T_init ∘ f(S)) and fed to it when ``lnet.pose_input_freqs`` > 0; None = the identity,
+    which is exactly what a cold-started run (``warm_start.method = "none"``) was trained with.
+    """
+    import torch
+
+    def localize(points: np.ndarray, valid: np.ndarray | None = None, init: np.ndarray | None = None,
+                 chunk: int = 1024) -> np.ndarray:
+        pts = np.asarray(points, dtype=np.float64)
+        if pts.ndim != 3 or pts.shape[2] != model.scans.shape[2]:
+            raise InputError(f"localize: points must be (M, N, {model.scans.shape[2]}), got shape {pts.shape}")
+        mask = np.ones(pts.shape[:2], bool) if valid is None else np.asarray(valid, dtype=bool)
+        pts = np.where(mask[..., None], pts, 0.0) / frame.scale  # invalid beams enter as zeros, as in training
+        if init is None:
+            init = np.tile(np.eye(4), (len(pts), 1, 1)) if model.is_3d else np.zeros((len(pts), 3))
+        prior = frame.to_norm(np.asarray(init, dtype=np.float64))
+        out = [model.localize(torch.as_tensor(pts[i : i + chunk], dtype=torch.float32, device=device),
+                              torch.as_tensor(mask[i : i + chunk], device=device),
+                              torch.as_tensor(prior[i : i + chunk], dtype=torch.float32, device=device))
+               for i in range(0, len(pts), chunk)]
+        return frame.from_norm(torch.cat(out).cpu().numpy().astype(np.float64)) if out else np.asarray(init, float)
+
+    return localize
 
 
 def _finish(scans: ScanSet, cfg: Config, poses: np.ndarray, t0: float, init) -> Result:

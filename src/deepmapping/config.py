@@ -52,7 +52,9 @@ class LNetConfig(_Section):
 class MNetConfig(_Section):
     """M-Net m_phi: global coordinate -> occupancy logit."""
 
-    kind: Literal["mlp", "fourier", "grid"] = "mlp"
+    # "resmlp": residual blocks RB(n) of two FC(n) layers, one per entry of ``hidden``
+    # (supplementary A: RB(64)-RB(64)-RB(64)-RB(128)-RB(128))
+    kind: Literal["mlp", "resmlp", "fourier", "grid"] = "mlp"
     hidden: list[int] = [64, 512, 512, 256, 128]
     fourier_features: int = 0  # number of log-spaced frequencies per axis (kind="fourier")
     fourier_max_freq: float = 32.0  # highest frequency: period 2/f on the map normalized to [-1, 1]
@@ -105,6 +107,12 @@ class ICPConfig(_Section):
     loop_inlier_distance: float = 0.1
     loop_sequential_submap: int = 5  # each keyframe is matched to its last N keyframes merged
     loop_sequential_method: Literal["point", "plane"] = "plane"
+    # the odometry motion as a prior of each sequential point-to-line match: (metres, degrees)
+    # standard deviations; [] = none (corridors then let matches slide)
+    loop_odometry_sigma: list[float] = [0.1, 5.0]
+    # a loop closure is kept only where the matched walls fix both translation directions:
+    # smaller / larger eigenvalue of the inliers' mean n n^T (0 = a straight corridor)
+    loop_min_constraint: float = 0.2
 
 
 class WarmStartConfig(_Section):

@@ -49,6 +49,8 @@ def icp_2d(
     tolerance: float = 1e-7,
     trim: float | None = 3.0,
     normal_k: int = 6,
+    prior_sigma: tuple[float, float] | None = None,
+    point_sigma: float = 0.03,
 ) -> tuple[np.ndarray, dict]:
     """Register ``source`` (N, 2) onto ``target`` (M, 2); returns (pose (3,), info).
 
@@ -59,14 +61,21 @@ def icp_2d(
     (None = adaptive) and within ``trim`` x the median correspondence distance (None = off).
     Stops when the pose update is below ``tolerance`` (translation measured relative to the
     target's RMS radius, angle in radians). Non-finite points are ignored.
+    ``prior_sigma`` = (sigma_t, sigma_theta) ("plane" only): ``init`` is also a measurement
+    (e.g. odometry) with these standard deviations, against point-to-line residuals of
+    ``point_sigma``: where the scans leave a direction unconstrained (a straight corridor),
+    the pose stays near ``init`` instead of sliding.
     info: fitness (fraction of source points with an inlier correspondence), rmse (RMS
     inlier point-to-point distance), iterations, converged.
     """
     if method not in ("point", "plane"):
         raise ValueError(f"method must be 'point' or 'plane', got {method!r}")
+    if prior_sigma is not None and method != "plane":
+        raise ValueError("prior_sigma needs method='plane'")
     src = _clean(source, "source")
     tgt = _clean(target, "target")
     pose = np.asarray(init, dtype=np.float64).reshape(3).copy()
+    prior0 = pose.copy()
     info = {"fitness": 0.0, "rmse": float("inf"), "iterations": 0, "converged": False}
     if src.shape[0] < 3 or tgt.shape[0] < 3:
         return pose, info
@@ -109,8 +118,12 @@ def icp_2d(
             jac_s = jac.copy()
             jac_s[:, 2] /= scale  # unknown u = dtheta * scale, in length units like dx, dy
             h = jac_s.T @ jac_s
+            g = jac_s.T @ res
+            if prior_sigma is not None:
+                h_p, g_p = _prior_terms(pose, prior0, prior_sigma, point_sigma, scale)
+                h, g = h + h_p, g + g_p
             h += np.eye(3) * (1e-9 * np.trace(h) + 1e-300)
-            x = np.linalg.solve(h, -jac_s.T @ res)
+            x = np.linalg.solve(h, -g)
             delta = np.array([x[0], x[1], x[2] / scale])
         pose = se2.compose(delta, pose)
         info["iterations"] = it
@@ -123,6 +136,16 @@ def icp_2d(
     info["fitness"] = float(keep.mean())
     info["rmse"] = float(np.sqrt(np.mean(d[keep] ** 2))) if keep.any() else float("inf")
     return pose, info
+
+
+def _prior_terms(pose, prior, sigma, point_sigma, scale):
+    """Normal-equation terms of the prior (pose - prior) / sigma, in point_sigma units, for the
+    update delta = (dx, dy, dtheta * scale) applied on the left of ``pose``."""
+    err = pose - prior
+    err[2] = (err[2] + np.pi) % (2 * np.pi) - np.pi
+    a = np.array([[1.0, 0.0, -pose[1] / scale], [0.0, 1.0, pose[0] / scale], [0.0, 0.0, 1.0 / scale]])
+    w = np.diag([(point_sigma / sigma[0]) ** 2] * 2 + [(point_sigma / sigma[1]) ** 2])
+    return a.T @ w @ a, a.T @ w @ err
 
 
 def incremental_icp(

@@ -4,7 +4,8 @@ DeepMapping alone does not close loops of metres (its loss basin is a fraction o
 and its authors' follow-up, DeepMapping2 (CVPR 2023), brings in loop closures and pairwise
 registrations. This is that ingredient, in the classic incremental form: keyframes are added
 in order; each is matched by ICP to a submap of its ``sequential_submap`` predecessors
-(point-to-line ICP by default, started from the odometry motion) and to a local
+(point-to-line ICP by default, started from the odometry motion, which also acts as a prior
+so that matches in featureless corridors do not slide) and to a local
 submap around up to ``max_candidates`` earlier keyframes near its current estimate (at least
 ``min_gap`` keyframes back); a match is kept when at least ``min_overlap`` of the scan's
 points fall within ``inlier_distance`` of the submap; each kept loop closure triggers a
@@ -21,7 +22,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from deepmapping.core import se2
-from deepmapping.core.icp import icp_2d
+from deepmapping.core.icp import estimate_normals_2d, icp_2d
 from deepmapping.core.pose_graph_2d import Edge, optimize_pose_graph
 
 __all__ = ["close_loops"]
@@ -40,11 +41,16 @@ def _overlap(src, tgt_tree, pose, distance):
 
 def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float = 4.0, max_candidates: int = 3,
                 min_overlap: float = 0.7, inlier_distance: float = 0.1, submap_half_width: int = 2,
-                sequential_submap: int = 5, sequential_method: str = "plane", progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, list[Edge]]:
+                sequential_submap: int = 5, sequential_method: str = "plane",
+                odometry_sigma: tuple[float, float] | None = (0.1, 5.0), min_constraint: float = 0.2, progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, list[Edge]]:
     """Poses (K, 3) after loop closing, and the pose-graph edges (sequential and loop closures).
 
     points (K, N, 2) and valid (K, N) in metres; init_poses (K, 3): odometry (or any guess),
-    whose relative motions start the sequential matches.
+    whose relative motions start the sequential matches; ``odometry_sigma`` = (metres, degrees):
+    with point-to-line matching, the odometry motion is also a measurement with these standard
+    deviations, so a match cannot slide along a featureless corridor (None: ICP alone).
+    ``min_constraint``: a loop closure is kept only where the matched geometry fixes both
+    directions of the translation (see ``_constraint``); corridors alias along themselves.
     """
     pts = np.asarray(points, dtype=np.float64)
     valid = np.asarray(valid, dtype=bool)
@@ -54,13 +60,14 @@ def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float =
     edges: list[Edge] = []
     for n in range(1, k):
         guess = se2.relative(init[n - 1], init[n])
-        target = _recent(pts, valid, poses, n - 1, sequential_submap)
-        rel, _ = icp_2d(pts[n][valid[n]], target, init=guess, method=sequential_method)
+        rel = _sequential(pts, valid, poses, n, guess, sequential_submap, sequential_method, odometry_sigma,
+                          radius, inlier_distance)
         edges.append(Edge(n - 1, n, rel))
         poses = np.vstack([poses, se2.compose(poses[-1], rel)])
         closed = False
         for j in _candidates(poses, n, min_gap, radius, max_candidates):
-            edge = _match(pts, valid, poses, j, n, submap_half_width, radius, min_overlap, inlier_distance)
+            edge = _match(pts, valid, poses, j, n, submap_half_width, radius, min_overlap, inlier_distance,
+                          min_constraint)
             if edge is not None:
                 edges.append(edge)
                 closed = True
@@ -69,6 +76,26 @@ def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float =
         if progress is not None:
             progress(n, k - 1)
     return optimize_pose_graph(poses, edges), edges
+
+
+def _sequential(pts, valid, poses, n, guess, submap, method, odometry_sigma, radius, inlier_distance):
+    """The motion from keyframe n-1 to n: three matches from the odometry ``guess``, the one that
+    puts most of the scan within ``inlier_distance`` of the submap of recent keyframes wins:
+    (1) point-to-line against the submap, with the odometry prior; (2) point-to-point against the
+    previous scan alone; (3) coarse-to-fine point-to-point against the submap (recovers odometry
+    jumps of a metre, e.g. wheel slip)."""
+    src = pts[n][valid[n]]
+    target = _recent(pts, valid, poses, n - 1, submap)
+    prior = None
+    if odometry_sigma is not None and method == "plane":
+        prior = (odometry_sigma[0], np.radians(odometry_sigma[1]))
+    first, _ = icp_2d(src, target, init=guess, method=method, prior_sigma=prior)
+    hypotheses = [first, icp_2d(src, pts[n - 1][valid[n - 1]], init=guess, method="point")[0]]
+    coarse, _ = icp_2d(src, target, init=guess, method="point", max_correspondence_distance=radius / 4, trim=None)
+    hypotheses.append(icp_2d(src, target, init=coarse, method=method, prior_sigma=None)[0])
+    tree = cKDTree(target)
+    scores = [_overlap(src, tree, h, inlier_distance) for h in hypotheses]
+    return hypotheses[int(np.argmax(scores))]  # ties: the first
 
 
 def _recent(points, valid, poses, last, count):
@@ -93,7 +120,7 @@ def _candidates(poses, n, min_gap, radius, max_candidates):
     return picked
 
 
-def _match(pts, valid, poses, j, n, half_width, radius, min_overlap, inlier_distance):
+def _match(pts, valid, poses, j, n, half_width, radius, min_overlap, inlier_distance, min_constraint):
     target = _submap(pts, valid, poses, j, half_width)
     src = pts[n][valid[n]]
     guess = se2.relative(poses[j], poses[n])
@@ -102,6 +129,22 @@ def _match(pts, valid, poses, j, n, half_width, radius, min_overlap, inlier_dist
                     trim=None)
     if np.hypot(*(rel[:2] - guess[:2])) > radius:
         return None
-    if _overlap(src, cKDTree(target), rel, inlier_distance) < min_overlap:
+    tree = cKDTree(target)
+    if _overlap(src, tree, rel, inlier_distance) < min_overlap:
+        return None
+    if _constraint(src, target, tree, rel, inlier_distance) < min_constraint:
         return None
     return Edge(j, n, rel)
+
+
+def _constraint(src, target, tree, pose, distance) -> float:
+    """How well a match fixes the translation: the smaller over the larger eigenvalue of the
+    mean n n^T of the target normals at the inliers (0: a straight corridor, which matches
+    anywhere along itself; 0.5: directions equally constrained)."""
+    d, j = tree.query(se2.transform_points(pose, src), distance_upper_bound=distance)
+    ok = np.isfinite(d)
+    if ok.sum() < 3:
+        return 0.0
+    n = estimate_normals_2d(target, 6, tree)[j[ok]]
+    ev = np.linalg.eigvalsh(n.T @ n / len(n))
+    return float(ev[0] / max(ev[1], 1e-12))

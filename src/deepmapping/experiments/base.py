@@ -25,6 +25,11 @@ class Job:
 
 def call_job(func: str, kwargs: dict, threads: int = 1) -> dict:
     """Run one job in this process (the worker side of every executor)."""
+    import os
+
+    # OpenMP pools (Open3D's ICP, NumPy's BLAS) of a worker: as many threads as torch's, set
+    # before they are first imported in this (spawned) process
+    os.environ.setdefault("OMP_NUM_THREADS", str(threads))
     import torch
 
     torch.set_num_threads(threads)

@@ -7,6 +7,7 @@ Units: the authors' layout stores points and (after loading) positions in px/512
 from __future__ import annotations
 
 import os
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +18,8 @@ from deepmapping.sim.maps import procedural_indoor_map, save_map_png
 from deepmapping.sim.scanner import simulate_scans
 from deepmapping.sim.trajectory import sample_trajectory
 
-__all__ = ["PX_SCALE", "simulate", "write_authors_layout", "paper_dataset"]
+__all__ = ["PX_SCALE", "simulate", "write_authors_layout", "paper_dataset", "paper_map", "paper_trajectory",
+           "PAPER_LENGTHS"]
 
 PX_SCALE = 512.0
 
@@ -163,18 +165,45 @@ def paper_dataset(out_dir: str | os.PathLike, seed: int = 0, size: int = 1024) -
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    ss = np.random.SeedSequence(seed)
-    map_ss, traj_ss = ss.spawn(2)
-    map_seeds = [int(s.generate_state(1)[0]) for s in map_ss.spawn(3)]
-    maps = [procedural_indoor_map(s, size) for s in map_seeds]
+    maps = [paper_map(m, seed, size) for m in range(3)]
     for m, occ in enumerate(maps):
         save_map_png(out / f"map{m}.png", occ)
 
-    lengths = [128] * 50 + [256] * 25
-    traj_seeds = [int(s.generate_state(1)[0]) for s in traj_ss.spawn(len(lengths))]
     folders: list[Path] = []
-    for i in track(range(len(lengths)), description="Simulating trajectories"):
-        m, k = i % 3, lengths[i]
-        scans = simulate(maps[m], num_poses=k, seed=traj_seeds[i], num_beams=256)
+    for i in track(range(len(PAPER_LENGTHS)), description="Simulating trajectories"):
+        m, k = i % 3, PAPER_LENGTHS[i]
+        scans = paper_trajectory(i, seed, size)
         folders.append(write_authors_layout(out / f"map{m}_traj{i:03d}_K{k}", scans, occ=maps[m]))
     return folders
+
+
+PAPER_LENGTHS = (128,) * 50 + (256,) * 25  # poses of the paper's 75 trajectories (trajectory i on map i % 3)
+
+
+def _paper_seeds(seed: int) -> tuple[list[int], list[int]]:
+    """(3 map seeds, 75 trajectory seeds) of the paper data set drawn from ``seed``."""
+    map_ss, traj_ss = np.random.SeedSequence(seed).spawn(2)
+    map_seeds = [int(s.generate_state(1)[0]) for s in map_ss.spawn(3)]
+    traj_seeds = [int(s.generate_state(1)[0]) for s in traj_ss.spawn(len(PAPER_LENGTHS))]
+    return map_seeds, traj_seeds
+
+
+@lru_cache(maxsize=6)
+def paper_map(m: int, seed: int = 0, size: int = 1024) -> np.ndarray:
+    """Map ``m`` (0..2) of :func:`paper_dataset` (cached per process; do not modify it)."""
+    return procedural_indoor_map(_paper_seeds(seed)[0][m], size)
+
+
+def paper_trajectory(i: int, seed: int = 0, size: int = 1024, num_poses: int | None = None,
+                     num_beams: int = 256) -> ScanSet:
+    """Trajectory ``i`` (0..74) of :func:`paper_dataset` in memory, on map ``i % 3``.
+
+    With the defaults it is exactly the scans that paper_dataset writes; ``num_poses`` /
+    ``num_beams`` give a smaller variant (same map and trajectory seed) for quick runs.
+    """
+    if not 0 <= i < len(PAPER_LENGTHS):
+        raise ValueError(f"trajectory index must be in 0..{len(PAPER_LENGTHS) - 1}, got {i}")
+    k = PAPER_LENGTHS[i] if num_poses is None else num_poses
+    scans = simulate(paper_map(i % 3, seed, size), num_poses=k, seed=_paper_seeds(seed)[1][i], num_beams=num_beams)
+    scans.source = f"<paper trajectory {i} (map {i % 3}, seed={seed}, K={k}, beams={num_beams})>"
+    return scans

@@ -53,13 +53,24 @@ class DeepMappingModel(nn.Module):
             self.lnet.calibrate(lnet_in[spread], init_poses[spread])
 
     def _with_correction(self, idx: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
-        init = self.init_poses[idx]
+        return self._compose(self.init_poses[idx], out, None if self.pivot is None else self.pivot[idx])
+
+    def _compose(self, init: torch.Tensor, out: torch.Tensor, pivot: torch.Tensor | None) -> torch.Tensor:
         if not self.is_3d:
             return compose(init, out)
-        if self.pivot is None:
+        if pivot is None:
             return init @ correction_matrix(out)
-        c = self.pivot[idx]  # the correction turns the scan about its centroid c, not about the sensor
-        return init @ translation(c) @ correction_matrix(out) @ translation(-c)
+        # the correction turns the scan about its centroid (pivot), not about the sensor
+        return init @ translation(pivot) @ correction_matrix(out) @ translation(-pivot)
+
+    @torch.no_grad()
+    def localize(self, scans: torch.Tensor, valid: torch.Tensor, init_poses: torch.Tensor) -> torch.Tensor:
+        """Poses of scans the model was not built with (normalized frame, as ``poses``): the
+        trained L-Net on each scan, composed with its prior pose ``init_poses`` as in training
+        (T = T_init ∘ f_theta(S)); the identity prior for a cold-started model."""
+        lnet_in = scans if (self.lnet.grid_shape is not None or scans.shape[2] == 2) else fill_invalid(scans, valid)
+        pivot = centroids(scans, valid) if self.pivot is not None else None
+        return self._compose(init_poses, self.lnet(lnet_in, init_poses), pivot)
 
     def poses(self, idx: torch.Tensor) -> torch.Tensor:
         if self.direct_poses is not None:

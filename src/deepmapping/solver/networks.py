@@ -167,10 +167,26 @@ class GridEncoding(nn.Module):
         return torch.cat(feats, dim=1)[0, :, 0].T.reshape(*x.shape[:-1], -1)
 
 
+class ResidualBlock(nn.Module):
+    """RB(n) of the supplementary's ResMLP (He et al.'s basic block with FC layers):
+    relu(FC(n)(relu(FC(n)(x))) + shortcut(x)); the shortcut is the identity, or a linear
+    projection when the input width is not n."""
+
+    def __init__(self, in_dim: int, width: int):
+        super().__init__()
+        self.fc1 = nn.Linear(in_dim, width)
+        self.fc2 = nn.Linear(width, width)
+        self.shortcut: nn.Module = nn.Identity() if in_dim == width else nn.Linear(in_dim, width, bias=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.relu(self.fc2(torch.relu(self.fc1(x))) + self.shortcut(x))
+
+
 class MNet(nn.Module):
     """M-Net: a global coordinate -> occupancy logit (sigmoid gives the probability).
 
     Paper: FC(64)-FC(512)-FC(512)-FC(256)-FC(128)-FC(1) on the raw coordinate ("mlp").
+    "resmlp" (supplementary A): one residual block RB(n) per entry n of ``hidden``, then FC(1).
     "fourier" feeds a positional encoding of the coordinate to a smaller MLP; "grid" feeds
     bilinearly interpolated multi-resolution features. Either way the map stays a continuous
     function of the coordinate, queryable at any resolution.
@@ -190,7 +206,7 @@ class MNet(nn.Module):
             prev = self.encoding.out_dim
         layers: list[nn.Module] = []
         for ch in cfg.hidden:
-            layers += [nn.Linear(prev, ch), nn.ReLU()]
+            layers += [ResidualBlock(prev, ch)] if cfg.kind == "resmlp" else [nn.Linear(prev, ch), nn.ReLU()]
             prev = ch
         layers.append(nn.Linear(prev, 1))
         self.mlp = nn.Sequential(*layers)
