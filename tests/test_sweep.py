@@ -79,3 +79,15 @@ def test_dask_reports_failures_without_losing_others(tmp_path):
     jobs = _jobs(2) + [Job("broken", ECHO, {"value": 1.0, "fail_times": 9, "marker": str(tmp_path / "m")})]
     results, errors = run_sweep(jobs, tmp_path / "out", cluster="local", workers=1, retries=0)
     assert set(results) == {"run-0", "run-1"} and list(errors) == ["broken"]
+
+
+def test_results_are_readable_like_any_new_file(tmp_path):
+    """Atomic writes go through mkstemp (mode 0600); the result gets the mode open() would give."""
+    import os
+
+    from deepmapping.io.atomic import atomic_write
+
+    mask = os.umask(0)
+    os.umask(mask)
+    atomic_write(tmp_path / "a.txt", lambda f: f.write(b"x"))
+    assert (tmp_path / "a.txt").stat().st_mode & 0o777 == 0o666 & ~mask
