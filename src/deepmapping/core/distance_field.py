@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["DistanceField2D"]
+__all__ = ["DistanceField2D", "clean_points_2d"]
 
 
 class DistanceField2D:
@@ -52,3 +52,12 @@ class DistanceField2D:
         hi = self.lo + self.cell * self.size
         outside = np.linalg.norm(q - np.clip(q, self.lo, hi), axis=-1)
         return d + outside
+
+
+def clean_points_2d(points, name: str) -> np.ndarray:
+    """(N, 2) float64 without non-finite rows; ValueError naming ``name`` if fewer than 3 remain."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if pts.shape[0] < 3:
+        raise ValueError(f"{name} needs at least 3 finite points, got {pts.shape[0]}")
+    return pts

@@ -34,17 +34,9 @@ import time
 import numpy as np
 
 from deepmapping.core import se2
-from deepmapping.core.distance_field import DistanceField2D
+from deepmapping.core.distance_field import DistanceField2D, clean_points_2d
 
 __all__ = ["goicp_2d", "incremental_goicp"]
-
-
-def _clean(points, name: str) -> np.ndarray:
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    pts = pts[np.isfinite(pts).all(axis=1)]
-    if pts.shape[0] < 3:
-        raise ValueError(f"{name} needs at least 3 finite points, got {pts.shape[0]}")
-    return pts
 
 
 def _exact_sse(pose, src, tgt, n_in: int) -> float:
@@ -168,8 +160,8 @@ def goicp_2d(
     from deepmapping.core.icp import icp_2d
 
     t0 = time.perf_counter()
-    src = _clean(source, "source")
-    tgt = _clean(target, "target")
+    src = clean_points_2d(source, "source")
+    tgt = clean_points_2d(target, "target")
     scale = float(max(np.linalg.norm(src, axis=1).max(), np.linalg.norm(tgt, axis=1).max())) or 1.0
     deadline = None if time_budget_s is None else t0 + float(time_budget_s)
     s = _Search(src / scale, tgt / scale, trim_fraction, mse_threshold, translation_range, dt_size, batch, deadline)

@@ -30,21 +30,13 @@ import time
 import numpy as np
 
 from deepmapping.core import se2
-from deepmapping.core.distance_field import DistanceField2D
+from deepmapping.core.distance_field import DistanceField2D, clean_points_2d
 
 __all__ = ["pso_register_2d", "incremental_pso"]
 
 # Clerc & Kennedy's constriction (chi = 0.7298, phi = 4.1) in inertia form (pso_registration
 # keeps the inertia 0.7298 but weights the attractions 2.1 and 1.9, which lets swarms diverge)
 INERTIA, C_COGNITIVE, C_SOCIAL = 0.7298, 1.49618, 1.49618
-
-
-def _clean(points, name: str) -> np.ndarray:
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    pts = pts[np.isfinite(pts).all(axis=1)]
-    if pts.shape[0] < 3:
-        raise ValueError(f"{name} needs at least 3 finite points, got {pts.shape[0]}")
-    return pts
 
 
 def pso_register_2d(
@@ -72,8 +64,8 @@ def pso_register_2d(
     rounds, generations, time_s.
     """
     t0 = time.perf_counter()
-    src = _clean(source, "source")
-    tgt = _clean(target, "target")
+    src = clean_points_2d(source, "source")
+    tgt = clean_points_2d(target, "target")
     if bounds is None:
         lo = np.r_[tgt.min(0), -np.pi]
         hi = np.r_[tgt.max(0), np.pi]
