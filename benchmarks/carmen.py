@@ -5,7 +5,7 @@
 
 For each log in ``../shared/data/carmen`` (``<log>.clf.bz2`` + ``<log>.relations``) registers the
 keyframes (``--keyframes``, default motion:0.5,15) with each method, places every scan of the log
-from its nearest keyframe by odometry, and scores all relations of Kümmerle et al. 2009:
+from its nearest keyframe (odometry, then ICP to the keyframes around it), and scores all relations of Kümmerle et al. 2009:
 translational (m) and rotational (deg) errors, mean ± std and median, split at 10 s.
 
 methods: ``odometry`` (the log's poses), ``icp`` (incremental point-to-point ICP, each pair

@@ -104,6 +104,26 @@ def test_non_keyframes_matched_to_their_keyframe(ring):
     assert err_icp.max() < 0.03 < err_odo.max() and err_icp.mean() < 0.3 * err_odo.mean()
 
 
+def test_non_keyframes_recover_an_odometry_turn_error(ring):
+    """Wheel slip: the odometry of the non-keyframes after keyframe 20 is 15 degrees off (as on
+    fr079); matching against the keyframes around them still places them within 1 degree."""
+    from deepmapping.core.keyframes import poses_for_all_scans, refine_by_scan_matching
+
+    points, valid, gt, _ = ring
+    keyframes = np.arange(0, len(gt), 5)
+    t = np.arange(len(gt), dtype=float)
+    slipped = gt.copy()
+    slipped[21:25, 2] += np.radians(15.0)
+    by_odometry = poses_for_all_scans(keyframes, gt[keyframes], slipped, t)
+    matched = refine_by_scan_matching(by_odometry, keyframes, t, points, valid)
+    turn_err = np.degrees(np.abs(se2.wrap_angle(matched[:, 2] - gt[:, 2])))
+    assert np.degrees(np.abs(se2.wrap_angle(by_odometry[21:23, 2] - gt[21:23, 2]))).min() > 14
+    assert turn_err.max() < 1.0
+    # the old limit (5 degrees of turn from the odometry placement) kept those scans where they were
+    kept = refine_by_scan_matching(by_odometry, keyframes, t, points, valid, max_turn_deg=5.0)
+    assert np.degrees(np.abs(se2.wrap_angle(kept[21:23, 2] - gt[21:23, 2]))).min() > 14
+
+
 def test_odometry_prior_holds_the_unobservable_corridor_direction():
     """Point-to-line ICP in a straight corridor with one weak feature slides along it; with the
     odometry prior the along-corridor offset stays near the odometry guess while the

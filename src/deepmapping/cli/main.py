@@ -97,7 +97,7 @@ def register(
     keyframes: Optional[str] = typer.Option(None, help="Logs (CARMEN): which scans to register: all | every:K | "
                                             "motion:METRES,DEGREES | time:SECONDS (default motion:0.5,15)."),
     non_keyframes: Optional[str] = typer.Option(None, help="Logs: the other scans' poses: icp (default: "
-                                                "odometry from the nearest keyframe, then matched to it) | odometry."),
+                                                "odometry from the nearest keyframe, then matched to the keyframes around it) | odometry."),
     device: Optional[str] = typer.Option(None, help="auto | cpu | cuda."),
     seed: Optional[int] = typer.Option(None, help="Seed (fixes everything)."),
     resume: bool = typer.Option(False, help="Continue an interrupted run in --out from its checkpoint."),
@@ -152,7 +152,7 @@ def experiment(
     jobs: Optional[int] = typer.Option(None, help="Runs at a time on this machine (default: one per core)."),
     threads: int = typer.Option(1, help="Torch threads per run."),
     cluster: Optional[str] = typer.Option(None, help="Dask scheduler address (tcp://host:8786), or 'local' for a "
-                                          "local Dask cluster; needs pip install 'deepmapping[cluster]'."),
+                                          "local Dask cluster; needs pip install 'deepmapping\\[cluster]'."),
     retries: int = typer.Option(1, help="Times a failed run is retried before it is reported."),
 ):
     """Reproduce one of the paper's experiments: independent runs in parallel, then a markdown report."""

@@ -9,7 +9,8 @@ A keyframe spec is a string:
 - ``"time:S"``: a new keyframe once S seconds have passed since the last one.
 
 The first scan is always a keyframe. Non-keyframes are placed by odometry relative to their
-nearest keyframe (in time): T_j = T_k · inv(O_k) · O_j, so every scan of the input gets a pose.
+nearest keyframe (in time): T_j = T_k · inv(O_k) · O_j, so every scan of the input gets a pose,
+then (``refine_by_scan_matching``) matched to the keyframes around it.
 """
 
 from __future__ import annotations
@@ -80,20 +81,30 @@ def poses_for_all_scans(keyframes: np.ndarray, keyframe_poses: np.ndarray, odome
 
 
 def refine_by_scan_matching(poses: np.ndarray, keyframes: np.ndarray, timestamps: np.ndarray, points: np.ndarray,
-                            valid: np.ndarray, max_shift: float = 0.3, max_turn_deg: float = 5.0) -> np.ndarray:
-    """Non-keyframes placed by ICP against their nearest keyframe's scan, started from ``poses``
-    (the odometry placement); a match that moves a scan more than ``max_shift`` metres or
-    ``max_turn_deg`` from its odometry placement is not trusted (the odometry pose is kept)."""
+                            valid: np.ndarray, max_shift: float = 0.3, max_turn_deg: float = 45.0,
+                            submap: int = 1) -> np.ndarray:
+    """Non-keyframes placed by point-to-line ICP against a submap of their nearest keyframe and
+    its ``submap`` neighbours on each side (in the keyframes' poses), started from ``poses`` (the
+    odometry placement). A match that moves a scan more than ``max_shift`` metres or
+    ``max_turn_deg`` from its odometry placement is not trusted (the odometry pose is kept).
+    Odometry turns are often off by 10-20 degrees within two seconds (wheel slip on the
+    Freiburg logs), so the turn allowed is wide; its translation is good to a few cm."""
     from deepmapping.core.icp import icp_2d
 
     out = np.array(poses, dtype=np.float64, copy=True)
-    near = keyframes[nearest_keyframe(keyframes, timestamps)]
+    near = nearest_keyframe(keyframes, timestamps)
     is_key = np.zeros(len(out), bool)
     is_key[keyframes] = True
+    targets: dict[int, np.ndarray] = {}
     for j in np.flatnonzero(~is_key):
-        k = near[j]
+        p = int(near[j])
+        k = keyframes[p]
+        if p not in targets:
+            parts = [se2.transform_points(se2.relative(out[k], out[m]), points[m][valid[m]])
+                     for m in keyframes[max(p - submap, 0):p + submap + 1]]
+            targets[p] = np.concatenate(parts)
         guess = se2.relative(out[k], out[j])
-        rel, info = icp_2d(points[j][valid[j]], points[k][valid[k]], init=guess, method="point")
+        rel, info = icp_2d(points[j][valid[j]], targets[p], init=guess, method="plane")
         change = se2.relative(guess, rel)
         if info["fitness"] > 0.5 and np.hypot(change[0], change[1]) <= max_shift \
                 and abs(np.degrees(change[2])) <= max_turn_deg:
