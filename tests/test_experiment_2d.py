@@ -125,6 +125,8 @@ def test_quick_experiment_end_to_end(tmp_path):
     text = (out / "report.md").read_text()
     assert "![" in text and "ate.png" in text and "point_distance.png" in text
     assert all(m in text for m in exp_2d.METHODS) and "84.2 %" in text
+    hours = sum(r["runtime_s"] for r in outcome["results"].values()) / 3600
+    assert f"{hours:.2f} h of run time in all" in text
 
     # missing results (failed runs) are reported, not fatal
     partial = {k: v for k, v in outcome["results"].items() if not k.startswith("pso")}

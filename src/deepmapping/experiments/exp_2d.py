@@ -185,6 +185,10 @@ def summarize(results: dict[str, dict]) -> dict[str, dict]:
     return out
 
 
+def _total_hours(results: dict[str, dict]) -> float:
+    return sum(_finite(r.get("runtime_s") for r in results.values() if isinstance(r, dict))) / 3600.0
+
+
 def _fmt_time(s: float) -> str:
     if not math.isfinite(s):
         return "-"
@@ -212,7 +216,9 @@ def report(out: Path, results: dict[str, dict], quick: bool) -> Path:
             f"x {QUICK['num_beams']} beams, DeepMapping {QUICK['epochs']} epochs, budget {QUICK_BUDGET_S:g} s"
             if quick else "the paper's 75 trajectories (50 x 128 poses, 25 x 256), 256 beams")
     sections.append(f"Simulated 2D data as in §4.1: {size}. Success: ATE < {SUCCESS_PX:g} px. "
-                    f"{len(results)} runs finished of {expected * len(METHODS)}."
+                    f"{len(results)} runs finished of {expected * len(METHODS)}, "
+                    f"{_total_hours(results):.2f} h of run time in all (each run on one core: with "
+                    f"`--jobs N` on N cores the wall time is about that over N)."
                     + (" Quick runs check that the suite works; their numbers are not comparable with the paper."
                        if quick else ""))
 
