@@ -90,19 +90,19 @@ def refine_by_scan_matching(poses: np.ndarray, keyframes: np.ndarray, timestamps
     Odometry turns are often off by 10-20 degrees within two seconds (wheel slip on the
     Freiburg logs), so the turn allowed is wide; its translation is good to a few cm."""
     from deepmapping.core.icp import icp_2d
+    from deepmapping.core.loop_closure import _submap
 
     out = np.array(poses, dtype=np.float64, copy=True)
     near = nearest_keyframe(keyframes, timestamps)
     is_key = np.zeros(len(out), bool)
     is_key[keyframes] = True
+    key_points, key_valid, key_poses = points[keyframes], valid[keyframes], out[keyframes]
     targets: dict[int, np.ndarray] = {}
     for j in np.flatnonzero(~is_key):
         p = int(near[j])
         k = keyframes[p]
         if p not in targets:
-            parts = [se2.transform_points(se2.relative(out[k], out[m]), points[m][valid[m]])
-                     for m in keyframes[max(p - submap, 0):p + submap + 1]]
-            targets[p] = np.concatenate(parts)
+            targets[p] = _submap(key_points, key_valid, key_poses, p, submap)
         guess = se2.relative(out[k], out[j])
         rel, info = icp_2d(points[j][valid[j]], targets[p], init=guess, method="plane")
         change = se2.relative(guess, rel)

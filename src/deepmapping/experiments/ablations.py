@@ -80,14 +80,13 @@ def run(trajectory: int, variant: str, poses: int, beams: int, epochs: int, eval
 
 
 def report(out: Path, results: dict[str, dict], quick: bool) -> Path:
-    from deepmapping.experiments.report import image, markdown_table, summary, write_report
+    from deepmapping.experiments.report import image, markdown_table, runs_by, summary, write_report
     from deepmapping.experiments.warm_start import curve_plot
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     s = sizes(quick)
-    by_variant = {v: sorted((r for r in results.values() if r.get("variant") == v), key=lambda r: r["trajectory"])
-                  for v in VARIANTS}
+    by_variant = runs_by(results, "variant", VARIANTS)
     n = len(s["trajectories"])
     sections = [
         f"{'Quick smoke run (not the paper sizes): ' if quick else ''}{n} simulated 2D "

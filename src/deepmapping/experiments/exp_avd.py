@@ -111,14 +111,13 @@ def _metrics(m: dict) -> dict:
 
 
 def report(out: Path, results: dict[str, dict], quick: bool) -> Path:
-    from deepmapping.experiments.report import box_plot, image, markdown_table, summary, write_report
+    from deepmapping.experiments.report import box_plot, image, markdown_table, runs_by, summary, write_report
     from deepmapping.experiments.warm_start import curve_plot
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     s = sizes(quick)
-    by_method = {m: sorted((r for r in results.values() if r.get("method") == m), key=lambda r: r["trajectory"])
-                 for m in METHODS}
+    by_method = runs_by(results, "method", METHODS)
     shown = {m: runs for m, runs in by_method.items() if runs}
     labels = {m: METHODS[m][0] for m in METHODS}
     box_plot(out / "ate_box.png", {labels[m]: [r["ate"] for r in runs] for m, runs in shown.items()},

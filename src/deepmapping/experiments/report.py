@@ -72,6 +72,12 @@ def save_figure(fig, path: Path) -> None:
     atomic_write(path, lambda f: f.write(buf.getvalue()))
 
 
+def runs_by(results: dict[str, dict], field: str, names) -> dict[str, list[dict]]:
+    """The run records grouped by ``field`` (a method, a variant), each group sorted by trajectory."""
+    return {n: sorted((r for r in results.values() if r.get(field) == n), key=lambda r: r["trajectory"])
+            for n in names}
+
+
 def summary(values: list[float]) -> dict:
     v = np.asarray([x for x in values if x is not None and np.isfinite(x)], float)
     if v.size == 0:
