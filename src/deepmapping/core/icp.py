@@ -15,7 +15,7 @@ from scipy.spatial import cKDTree
 from deepmapping.core import se2
 from deepmapping.core.alignment import rigid_align
 
-__all__ = ["icp_2d", "incremental_icp", "estimate_normals_2d"]
+__all__ = ["icp_2d", "incremental_icp", "estimate_normals_2d", "overlap"]
 
 
 def estimate_normals_2d(points: np.ndarray, k: int = 6, tree: cKDTree | None = None) -> np.ndarray:
@@ -148,6 +148,36 @@ def _prior_terms(pose, prior, sigma, point_sigma, scale):
     return a.T @ w @ a, a.T @ w @ err
 
 
+def overlap(pose, source, target, radius_factor: float = 3.0) -> float:
+    """Fraction of ``source`` points within ``radius_factor`` x the target's median point spacing
+    of a ``target`` point once moved by ``pose``: a fit score that, unlike ICP's adaptive
+    inlier threshold, does not grow with the misfit."""
+    src, tgt = _clean(source, "source"), _clean(target, "target")
+    if src.shape[0] == 0 or tgt.shape[0] < 2:
+        return 0.0
+    tree = cKDTree(tgt)
+    spacing = float(np.median(tree.query(tgt, k=2)[0][:, 1]))
+    d, _ = tree.query(se2.transform_points(np.asarray(pose, np.float64), src))
+    return float(np.mean(d <= radius_factor * spacing))
+
+
+def _recover(rel, prev, src, tgt, method, margin, icp_kwargs) -> np.ndarray:
+    """ICP from the constant-velocity guess can land in a wrong basin (e.g. slide along a
+    corridor) and, fed forward as the next guess, run away. Also try the identity and a
+    bounded, untrimmed ICP; keep one only if its :func:`overlap` beats ``rel``'s by ``margin``."""
+    src, tgt = _clean(src, "source"), _clean(tgt, "target")
+    if src.shape[0] < 3 or tgt.shape[0] < 3:
+        return rel
+    scale = float(np.sqrt(np.mean(np.sum((tgt - tgt.mean(0)) ** 2, axis=1)))) or 1.0
+    bound = min(0.25 * scale, icp_kwargs.get("max_correspondence_distance") or np.inf)
+    bounded = icp_kwargs | {"trim": None, "max_correspondence_distance": bound}
+    cands = [rel, icp_2d(src, tgt, init=np.zeros(3), method=method, **icp_kwargs)[0],
+             icp_2d(src, tgt, init=prev, method=method, **bounded)[0]]
+    scores = [overlap(c, src, tgt) for c in cands]
+    best = int(np.argmax(scores))
+    return cands[best] if scores[best] > scores[0] + margin else rel
+
+
 def incremental_icp(
     points,
     valid,
@@ -155,6 +185,7 @@ def incremental_icp(
     init: str = "velocity",
     progress: Callable[[int, int], None] | None = None,
     initial_poses: np.ndarray | None = None,
+    recover_margin: float | None = 0.05,
     **icp_kwargs,
 ) -> np.ndarray:
     """Incremental (frame-to-frame) ICP over an ordered scan sequence.
@@ -162,10 +193,13 @@ def incremental_icp(
     points (K, N, 2), valid (K, N). Scan i is registered to scan i-1 and the relative
     motions are chained with :func:`se2.chain`; pose 0 is the identity. ``init``:
     "velocity" (previous relative motion, constant-velocity guess), "identity", or "best"
-    (run both, keep the higher fitness, then lower rmse). ``progress(i, K)`` is called after
-    each registered scan. ``initial_poses`` (K, 3), e.g. odometry: each pair starts from its
-    relative motion there (``init`` is then ignored) and pose 0 is ``initial_poses[0]``. Extra
-    keyword arguments go to :func:`icp_2d`. Returns (K, 3).
+    (run both, keep the higher fitness, then lower rmse). With "velocity", each pair is also
+    registered from the identity and with a bounded untrimmed ICP, and one of those replaces
+    the velocity result when its :func:`overlap` is higher by ``recover_margin`` (None: off),
+    which stops a pair in a wrong basin from running the chain away. ``progress(i, K)`` is
+    called after each registered scan. ``initial_poses`` (K, 3), e.g. odometry: each pair
+    starts from its relative motion there (``init`` is then ignored) and pose 0 is
+    ``initial_poses[0]``. Extra keyword arguments go to :func:`icp_2d`. Returns (K, 3).
     """
     if init not in ("velocity", "identity", "best"):
         raise ValueError(f"init must be 'velocity', 'identity' or 'best', got {init!r}")
@@ -188,6 +222,8 @@ def incremental_icp(
             rel, _ = icp_2d(src, tgt, init=np.zeros(3), method=method, **icp_kwargs)
         elif init == "velocity":
             rel, _ = icp_2d(src, tgt, init=prev, method=method, **icp_kwargs)
+            if recover_margin is not None:
+                rel = _recover(rel, prev, src, tgt, method, recover_margin, icp_kwargs)
         else:
             cands = [icp_2d(src, tgt, init=g, method=method, **icp_kwargs) for g in (prev, np.zeros(3))]
             rel, _ = max(cands, key=lambda c: (round(c[1]["fitness"], 6), -c[1]["rmse"]))

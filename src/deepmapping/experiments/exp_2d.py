@@ -185,6 +185,37 @@ def summarize(results: dict[str, dict]) -> dict[str, dict]:
     return out
 
 
+def by_length(results: dict[str, dict]) -> list[list]:
+    """Rows per method and trajectory length: runs, median ATE, success rate, mean runtime."""
+    rows = []
+    for method in METHODS:
+        for poses in sorted({r.get("num_poses") for r in results.values() if isinstance(r, dict)} - {None}):
+            sel = [r for r in results.values() if isinstance(r, dict) and r.get("method") == method
+                   and r.get("num_poses") == poses]
+            ate = _finite(r.get("ate") for r in sel)
+            rt = _finite(r.get("runtime_s") for r in sel)
+            if sel:
+                rows.append([method, poses, len(sel), float(np.median(ate)) if ate else float("nan"),
+                             _pct(float(np.mean([bool(r.get("success")) for r in sel]))),
+                             _fmt_time(float(np.mean(rt)) if rt else float("nan"))])
+    return rows
+
+
+def against_warm_start(results: dict[str, dict], warm: str = "icp-plane") -> list[list]:
+    """Per warm-started method, paired by trajectory with its warm start: how often and how much it improves."""
+    start = {r["trajectory"]: r.get("ate") for r in results.values()
+             if isinstance(r, dict) and r.get("method") == warm and "trajectory" in r}
+    rows = []
+    for method in ("deepmapping", "direct"):
+        pairs = [(r.get("ate"), start[r["trajectory"]]) for r in results.values()
+                 if isinstance(r, dict) and r.get("method") == method and r.get("trajectory") in start]
+        pairs = [(a, b) for a, b in pairs if len(_finite([a, b])) == 2]
+        if pairs:
+            ratio = [a / max(b, 1e-9) for a, b in pairs]
+            rows.append([method, len(pairs), sum(a < b for a, b in pairs), float(np.median(ratio))])
+    return rows
+
+
 def _total_hours(results: dict[str, dict]) -> float:
     return sum(_finite(r.get("runtime_s") for r in results.values() if isinstance(r, dict))) / 3600.0
 
@@ -234,6 +265,15 @@ def report(out: Path, results: dict[str, dict], quick: bool) -> Path:
     table = rep.markdown_table(headers, rows)
     atomic_write(out / "table.md", lambda f: f.write((table + "\n").encode()))
     sections.append("## Table 1\n\n" + table)
+
+    sections.append("### By trajectory length\n\n" + rep.markdown_table(
+        ["method", "poses", "runs", "median ATE (px)", "success", "mean runtime"], by_length(results)))
+    paired = against_warm_start(results)
+    if paired:
+        sections.append("### Against the warm start\n\ndeepmapping and direct start from icp-plane's poses; paired "
+                        "by trajectory:\n\n" + rep.markdown_table(
+                            ["method", "trajectories", "ATE lower than icp-plane's", "median ATE / icp-plane's ATE"],
+                            paired))
 
     pictures = []
     for name, key, label, thr in (("ate.png", "ate", "ATE (px)", SUCCESS_PX),
