@@ -318,3 +318,14 @@ def test_incremental_icp_does_not_run_away_from_a_wrong_basin():
 
     assert step_errors_px(incremental_icp(pts, valid, method="plane", recover_margin=None)).max() > 100.0
     assert step_errors_px(incremental_icp(pts, valid, method="plane")).max() < 5.0
+
+    # the same through register() and the config (icp.recover_margin: null turns it off)
+    import dataclasses
+
+    from deepmapping.api import register
+    from deepmapping.config import load_config
+
+    part = dataclasses.replace(scans, points=scans.points[28:35], valid=valid, gt_poses=gt, names=[])
+    ate_px = {m: register(part, load_config("default", overrides={"method": "icp-plane", "icp.recover_margin": m}))
+              .metrics["ate"] for m in (None, 0.05)}
+    assert ate_px[None] > 50.0 and ate_px[0.05] < 5.0

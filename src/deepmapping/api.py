@@ -94,7 +94,8 @@ def incremental_icp(scans: ScanSet, cfg: Config, method: str, progress=None, ini
     return icp_chain(scans.points.astype(np.float64), scans.valid, method=method.removeprefix("icp-"),
                      initial_poses=init,
                      max_iterations=cfg.icp.max_iterations,
-                     max_correspondence_distance=cfg.icp.max_correspondence_distance, progress=progress)
+                     max_correspondence_distance=cfg.icp.max_correspondence_distance,
+                     recover_margin=cfg.icp.recover_margin, progress=progress)
 
 
 def loop_closure_poses(scans: ScanSet, cfg: Config, init=None, progress=None) -> np.ndarray:

@@ -93,6 +93,9 @@ class OptimConfig(_Section):
 class ICPConfig(_Section):
     max_iterations: int = 50
     max_correspondence_distance: float | None = None  # None = adaptive to the scan scale
+    # 2D incremental ICP: a pair is also registered from the identity and by a bounded untrimmed
+    # ICP, and takes that result when its overlap beats the constant-velocity one by this (None: off)
+    recover_margin: float | None = 0.05
     voxel_size: float | None = None  # 3D: downsampling voxel before ICP / multiway (None = adaptive)
     multiway_edges: str = "all"  # 3D multiway registration: "all" pairs or "window:N"
     # icp-planar (3-DoF AVD-like poses): yaw offsets tried per pair, the best fitness wins

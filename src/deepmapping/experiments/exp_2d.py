@@ -298,6 +298,9 @@ def report(out: Path, results: dict[str, dict], quick: bool) -> Path:
         "- deepmapping (default profile) and direct warm-start from incremental point-to-plane ICP (warm_start "
         "auto); deepmapping-paper starts cold, as §4.1. direct starts from the same warm start as deepmapping, not "
         "from one forward pass of an untrained L-Net as in the paper.",
+        "- icp-point and icp-plane: our incremental 2D ICP from the constant-velocity guess; a pair whose result "
+        "overlaps its predecessor clearly less than the same pair registered from the identity or by a bounded, "
+        "untrimmed ICP takes that one (core/icp.incremental_icp), so that one wrong basin does not run the chain away.",
         "- goicp and pso are pairwise (each scan onto its predecessor, motions chained); Go-ICP is our 2-D "
         "implementation of Yang et al.'s branch and bound (trimmed 10 %), PSO follows iralabdisco/pso_registration "
         "(50 particles, global domain, mean nearest-point distance trimmed 10 %) in rounds until its budget.",
