@@ -382,7 +382,10 @@ def test_ctrl_c_saves_checkpoint_and_resume_finishes(data16, tmp_path):
             "--out", str(out)]
     with open(log_out, "w") as fo, open(log_err, "w") as fe:
         t0 = time.monotonic()
-        proc = subprocess.Popen(args, stdout=fo, stderr=fe, env=ENV)
+        # SIGINT back to its default in the child: a test run started as a background job of a
+        # non-interactive shell inherits SIGINT ignored, and Python then never raises KeyboardInterrupt
+        proc = subprocess.Popen(args, stdout=fo, stderr=fe, env=ENV,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         try:
             deadline = t0 + 60
             while not (out / "config.yaml").exists():
