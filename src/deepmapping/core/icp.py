@@ -152,13 +152,18 @@ def overlap(pose, source, target, radius_factor: float = 3.0) -> float:
     """Fraction of ``source`` points within ``radius_factor`` x the target's median point spacing
     of a ``target`` point once moved by ``pose``: a fit score that, unlike ICP's adaptive
     inlier threshold, does not grow with the misfit."""
+    return _overlap_scorer(source, target, radius_factor)(pose)
+
+
+def _overlap_scorer(source, target, radius_factor: float = 3.0) -> Callable[[np.ndarray], float]:
+    """:func:`overlap` of many poses of one pair: the target's tree and spacing built once."""
     src, tgt = _clean(source, "source"), _clean(target, "target")
     if src.shape[0] == 0 or tgt.shape[0] < 2:
-        return 0.0
+        return lambda pose: 0.0
     tree = cKDTree(tgt)
-    spacing = float(np.median(tree.query(tgt, k=2)[0][:, 1]))
-    d, _ = tree.query(se2.transform_points(np.asarray(pose, np.float64), src))
-    return float(np.mean(d <= radius_factor * spacing))
+    radius = radius_factor * float(np.median(tree.query(tgt, k=2)[0][:, 1]))
+    return lambda pose: float(np.mean(tree.query(se2.transform_points(np.asarray(pose, np.float64), src))[0]
+                                      <= radius))
 
 
 def _recover(rel, prev, src, tgt, method, margin, icp_kwargs) -> np.ndarray:
@@ -173,7 +178,8 @@ def _recover(rel, prev, src, tgt, method, margin, icp_kwargs) -> np.ndarray:
     bounded = icp_kwargs | {"trim": None, "max_correspondence_distance": bound}
     cands = [rel, icp_2d(src, tgt, init=np.zeros(3), method=method, **icp_kwargs)[0],
              icp_2d(src, tgt, init=prev, method=method, **bounded)[0]]
-    scores = [overlap(c, src, tgt) for c in cands]
+    score = _overlap_scorer(src, tgt)
+    scores = [score(c) for c in cands]
     best = int(np.argmax(scores))
     return cands[best] if scores[best] > scores[0] + margin else rel
 

@@ -187,18 +187,11 @@ def summarize(results: dict[str, dict]) -> dict[str, dict]:
 
 def by_length(results: dict[str, dict]) -> list[list]:
     """Rows per method and trajectory length: runs, median ATE, success rate, mean runtime."""
-    rows = []
-    for method in METHODS:
-        for poses in sorted({r.get("num_poses") for r in results.values() if isinstance(r, dict)} - {None}):
-            sel = [r for r in results.values() if isinstance(r, dict) and r.get("method") == method
-                   and r.get("num_poses") == poses]
-            ate = _finite(r.get("ate") for r in sel)
-            rt = _finite(r.get("runtime_s") for r in sel)
-            if sel:
-                rows.append([method, poses, len(sel), float(np.median(ate)) if ate else float("nan"),
-                             _pct(float(np.mean([bool(r.get("success")) for r in sel]))),
-                             _fmt_time(float(np.mean(rt)) if rt else float("nan"))])
-    return rows
+    lengths = sorted({r.get("num_poses") for r in results.values() if isinstance(r, dict)} - {None})
+    by = {k: summarize({key: r for key, r in results.items() if isinstance(r, dict) and r.get("num_poses") == k})
+          for k in lengths}
+    return [[m, k, s["runs"], s["median_ate"], _pct(s["success"]), _fmt_time(s["mean_runtime_s"])]
+            for m in METHODS for k, ss in by.items() for s in [ss[m]] if s["runs"]]
 
 
 def against_warm_start(results: dict[str, dict], warm: str = "icp-plane") -> list[list]:
