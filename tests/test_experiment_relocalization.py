@@ -16,15 +16,18 @@ def tiny_scans():
     return simulate(procedural_indoor_map(2, 256), 12, seed=3, num_beams=64)
 
 
-@pytest.mark.parametrize("warm", ["icp-plane", "none"])
+@pytest.mark.parametrize("warm", ["icp-plane", "none", "curriculum"])
 def test_localize_on_the_training_scans_returns_the_registered_poses(tiny_scans, warm):
     from deepmapping.api import register
 
     s = tiny_scans
-    cfg = load_config("default", overrides={"warm_start.method": warm, "optim.epochs": 3, "threads": 1})
-    result = register(s, cfg)
+    over = {"warm_start.method": "none" if warm == "curriculum" else warm, "optim.epochs": 3, "threads": 1,
+            "curriculum.enabled": "on" if warm == "curriculum" else "off"}
+    result = register(s, load_config("default", overrides=over))
     assert result.localize is not None
-    prior = result.init_poses if warm != "none" else None  # a cold start's prior is the identity
+    assert (result.placements is not None) == (warm == "curriculum")
+    # a plain cold start's prior is the identity; a curriculum run's, the placements
+    prior = {"icp-plane": result.init_poses, "none": None, "curriculum": result.placements}[warm]
     got = result.localize(s.points, s.valid, prior)
     assert got.shape == result.poses.shape
     np.testing.assert_allclose(got[:, :2], result.poses[:, :2], atol=1e-5)

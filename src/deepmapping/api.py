@@ -29,16 +29,21 @@ class Result:
     occupancy: Callable[[np.ndarray], np.ndarray] | None = None  # M-Net: (M, D) -> p(occupied)
     # trained L-Net (DeepMapping only): (points (M, N, D), valid (M, N), init=None) -> poses of new scans
     localize: Callable[..., np.ndarray] | None = None
+    # cold-start curriculum: where it placed each scan (the poses the L-Net's corrections compose with)
+    placements: np.ndarray | None = None
 
 
 def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | Path | None = None,
              resume: bool = False, on_log: Callable[[dict], None] | None = None,
              on_epoch: Callable[[int, int, float], None] | None = None,
-             on_icp_progress: Callable[[int, int], None] | None = None) -> Result:
+             on_icp_progress: Callable[[int, int], None] | None = None,
+             on_place: Callable[[int, int], None] | None = None) -> Result:
     """Register the scans with ``config.method`` (deepmapping, direct, icp-point, icp-plane,
     icp-planar, multiway, loop-closure).
 
-    With no config: the "default" profile for 2D scans, "default-3d" for 3D ones.
+    With no config: the "default" profile for 2D scans, "default-3d" for 3D ones. A cold start
+    (``warm_start.method = "none"``) of an ordered 2D sequence places the scans by the
+    curriculum first (``config.curriculum``; ``on_place(placed, total)`` reports its progress).
     """
     scans.validate()
     cfg = config or load_config("default-3d" if scans.is_3d else "default")
@@ -53,7 +58,7 @@ def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | 
         t0 -= saved["elapsed_s"]
     else:
         init = warm_start_poses(scans, cfg, on_icp_progress)
-    return _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch)
+    return _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_place)
 
 
 BASELINES = ("icp-point", "icp-plane", "icp-planar", "multiway", "loop-closure")
@@ -183,7 +188,7 @@ def resolve_device(name: str) -> str:
     return name
 
 
-def _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch) -> Result:
+def _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_place=None) -> Result:
     import torch
 
     from deepmapping.solver import checkpoint as ckpt
@@ -217,10 +222,12 @@ def _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch) -> Result:
     trainer.extra = {"init_poses_input": init.tolist(), "frame": frame.to_dict()}
     if saved is not None:
         ckpt.restore(trainer, saved)
-    trainer.run(checkpoint, on_log, on_epoch)
+    trainer.run(checkpoint, on_log, on_epoch, on_place)
     poses = frame.from_norm(model.all_poses().cpu().numpy().astype(np.float64))
     result = _finish(scans, cfg, poses, t0, init=init)
     result.history = trainer.state.history
+    if trainer.use_curriculum:
+        result.placements = frame.from_norm(model.init_poses.cpu().numpy().astype(np.float64))
     result.occupancy = _occupancy_fn(model, frame, device)
     if model.direct_poses is None:
         result.localize = _localize_fn(model, frame, device)
@@ -245,7 +252,9 @@ def _localize_fn(model, frame, device):
     (M, N) (None = all beams valid); returns poses in the input's units, as ``Result.poses``.
     ``init``: each scan's prior pose, composed with the L-Net's output as in training
     (T = T_init ∘ f(S)) and fed to it when ``lnet.pose_input_freqs`` > 0; None = the identity,
-    which is exactly what a cold-started run (``warm_start.method = "none"``) was trained with.
+    which is exactly what a cold start without the curriculum (``warm_start.method = "none"``,
+    ``curriculum.enabled = "off"``) was trained with; a curriculum run composes f_theta with each
+    scan's placement (``Result.placements``), so a new scan needs a prior near its pose.
     """
     import torch
 

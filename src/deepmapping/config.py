@@ -90,6 +90,35 @@ class OptimConfig(_Section):
     checkpoint_every_s: float = 30.0
 
 
+class CurriculumConfig(_Section):
+    """Cold start (warm_start.method = "none"): the paper's SLAM setting (§3.4) as a schedule.
+
+    Scans enter the map in sequence order, ``chunk`` at a time. Each new scan is placed where
+    its predecessor is, moved on by the last motion (constant velocity), and turned by the
+    best of ``hypotheses`` candidate headings, the one with the lowest DeepMapping loss (eq. 4
+    under the current M-Net + lambda x Chamfer to its predecessor); then ``steps`` optimizer
+    steps of the same loss move the placements and train the M-Net on the newest ``window``
+    scans and ``revisit`` random earlier ones. When every scan is placed, the placements are the
+    warm start of ordinary training (T_i = T_place,i ∘ f_theta(S_i)). No ICP, no
+    correspondence search beyond the Chamfer term's nearest neighbours.
+    """
+
+    # "auto": on for a cold start (warm_start none) of an ordered 2D sequence in the fast profiles
+    enabled: Literal["auto", "on", "off"] = "auto"
+    chunk: int = Field(4, ge=1)
+    steps: int = Field(30, ge=0)
+    window: int = Field(16, ge=2)
+    revisit: int = Field(16, ge=0)
+    lr: float = Field(3e-3, gt=0)  # constant, for the placements and the M-Net
+    hypotheses: int = Field(32, ge=1)  # the constant-velocity heading + (hypotheses - 1) random turns
+    max_turn_deg: float = Field(30.0, ge=0, le=180)  # random turns are uniform in +- this
+    max_shift: float = Field(0.25, ge=0)  # random shifts within this x the scan's median range
+    rounds: int = Field(3, ge=1)  # rounds of hypotheses, each around the best with half the spread
+    # hypotheses are ranked by select_bce_weight x eq. 4 + loss.chamfer_weight x Chamfer
+    select_bce_weight: float = Field(1.0, ge=0)
+    log_every: int = Field(8, ge=1)  # log (loss, ATE) every N stages
+
+
 class ICPConfig(_Section):
     max_iterations: int = 50
     max_correspondence_distance: float | None = None  # None = adaptive to the scan scale
@@ -145,6 +174,7 @@ class Config(_Section):
     loss: LossConfig = Field(default_factory=LossConfig)
     optim: OptimConfig = Field(default_factory=OptimConfig)
     icp: ICPConfig = Field(default_factory=ICPConfig)
+    curriculum: CurriculumConfig = Field(default_factory=CurriculumConfig)
     warm_start: WarmStartConfig = Field(default_factory=WarmStartConfig)
     eval: EvalConfig = Field(default_factory=EvalConfig)
 
@@ -181,7 +211,7 @@ def validate_config(data: dict) -> Config:
 PROFILES: dict[str, dict] = {
     # §4.1 exactly: full-size networks, 19 uniform free-space samples on every beam,
     # batch 128, 3000 epochs, Adam lr 1e-3 constant, lambda = 10.
-    "paper": {},
+    "paper": {"curriculum": {"enabled": "off"}},
     # Fast path, measured in benchmarks/ (docs/method.md explains each change).
     "default": {
         "lnet": {"conv_channels": [32, 64, 128], "fc_channels": [256, 128], "zero_init_output": True,
@@ -190,6 +220,9 @@ PROFILES: dict[str, dict] = {
         "loss": {"free_samples": 4, "free_sampling": "stratified", "beams_per_scan": 64},
         "optim": {"batch_size": 64, "epochs": 250, "lr_final_factor": 0.05, "eval_every": 10},
     },
+    # Cold start (no initial poses, no classical registration): the default profile after the
+    # curriculum (section "curriculum", docs/method.md). `--warm-start none` picks it.
+    "cold": {"warm_start": {"method": "none"}, "curriculum": {"enabled": "on"}},
     # §4.2 (AVD) exactly: C(64)-C(128)-C(256)-C(1024)-AM(1)-FC(512)-FC(256)-FC(3) on depth images
     # (PointNet FC(64)-...-FC(1024) on clouds), the §4.1 M-Net with a 3-D input, 35 free-space
     # samples per ray, lambda = 0.1, batch 8, 3000 epochs, Adam lr 1e-3; no warm start.
@@ -198,6 +231,7 @@ PROFILES: dict[str, dict] = {
         "loss": {"free_samples": 35, "chamfer_weight": 0.1},
         "optim": {"batch_size": 8},
         "warm_start": {"method": "none"},
+        "curriculum": {"enabled": "off"},
     },
     # Fast 3D path (benchmarks/avd_3d.py measures it).
     "default-3d": {
@@ -212,11 +246,15 @@ PROFILES: dict[str, dict] = {
 }
 
 
+PROFILE_BASE = {"cold": "default"}  # profiles written as changes to another one
+
+
 def load_config(profile: str = "default", path: str | Path | None = None, overrides: dict | None = None) -> Config:
     """Profile defaults, then a YAML/JSON file, then dotted overrides."""
     if profile not in PROFILES:
         raise ConfigError(f"unknown profile '{profile}' (choose from {', '.join(PROFILES)})")
-    data = _deep_merge(Config().model_dump(), PROFILES[profile])
+    base = PROFILES[PROFILE_BASE[profile]] if profile in PROFILE_BASE else {}
+    data = _deep_merge(_deep_merge(Config().model_dump(), base), PROFILES[profile])
     data["profile"] = profile
     if path is not None:
         data = _deep_merge(data, _read_config_file(Path(path)))

@@ -8,7 +8,7 @@ import typer
 
 
 def run_experiment_cli(name: str, out: Path, quick: bool, jobs: int | None, threads: int, cluster: str | None,
-                       retries: int) -> None:
+                       retries: int, only: str | None = None) -> None:
     from deepmapping.cli.progress import console
     from deepmapping.experiments import experiment_module
     from deepmapping.experiments.runner import run_experiment
@@ -24,7 +24,7 @@ def run_experiment_cli(name: str, out: Path, quick: bool, jobs: int | None, thre
             bar.update(task, completed=done, total=total, info=key)
 
         outcome = run_experiment(name, out, quick=quick, workers=jobs, threads=threads, cluster=cluster,
-                                 retries=retries, progress=progress)
+                                 retries=retries, progress=progress, only=only)
     n_err = len(outcome["errors"])
     if n_err:
         console.print(f"[yellow]{n_err} run(s) failed[/] (listed in the report); rerun the same command to retry them")

@@ -144,9 +144,11 @@ def evaluate(
 @app.command(epilog="Examples:\n\n  deepmapping experiment 1d --out exp/1d\n\n"
                     "  deepmapping experiment 2d --quick --out exp/2d_quick\n\n"
                     "  deepmapping experiment 2d --out exp/2d --jobs 8\n\n"
+                    "  deepmapping experiment 2d --out exp/2d --only 'deepmapping-cold-*'\n\n"
+                    "  deepmapping experiment robustness --out exp/robustness\n\n"
                     "  deepmapping experiment avd --out exp/avd --cluster tcp://scheduler:8786")
 def experiment(
-    name: str = typer.Argument(..., help="2d | avd | relocalization | warm-start | ablations | 1d"),
+    name: str = typer.Argument(..., help="2d | avd | relocalization | warm-start | ablations | 1d | robustness"),
     out: Path = typer.Option(..., help="Folder for the runs, pictures and report.md (rerun to resume)."),
     quick: bool = typer.Option(False, "--quick", help="A small size that runs in minutes on 2 CPU cores."),
     jobs: Optional[int] = typer.Option(None, help="Runs at a time on this machine (default: one per core)."),
@@ -154,11 +156,13 @@ def experiment(
     cluster: Optional[str] = typer.Option(None, help="Dask scheduler address (tcp://host:8786), or 'local' for a "
                                           "local Dask cluster; needs pip install 'deepmapping\\[cluster]'."),
     retries: int = typer.Option(1, help="Times a failed run is retried before it is reported."),
+    only: Optional[str] = typer.Option(None, help="Run only the runs whose key matches this shell pattern "
+                                       "(e.g. 'deepmapping-cold-*'); the report still uses every finished run."),
 ):
     """Reproduce one of the paper's experiments: independent runs in parallel, then a markdown report."""
     from deepmapping.cli.experiment_cmd import run_experiment_cli
 
-    run_experiment_cli(name, out, quick, jobs, threads, cluster, retries)
+    run_experiment_cli(name, out, quick, jobs, threads, cluster, retries, only)
 
 
 @app.command(epilog="Example:\n\n  deepmapping demo --out demo")

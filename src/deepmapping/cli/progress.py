@@ -35,6 +35,9 @@ class Callbacks:
     def icp(self, i: int, total: int) -> None:
         self.bar.update(self._task("warm start / ICP", total), completed=i)
 
+    def place(self, placed: int, total: int) -> None:
+        self.bar.update(self._task("cold start / placing scans", total), completed=placed)
+
     def epoch(self, epoch: int, total: int, loss: float) -> None:
         info = f"loss {loss:.4f}" + (f"  ATE {self.ate:.2f}" if self.ate is not None else "")
         self.bar.update(self._task("training", total), completed=epoch, info=info)

@@ -14,6 +14,8 @@ def build_config(profile, config_file, method, epochs, warm_start, init, device,
 
     if is_3d and f"{profile}-3d" in PROFILES:
         profile = f"{profile}-3d"
+    if profile == "default" and warm_start == "none" and init is None:
+        profile = "cold"  # the cold start's profile: the default one after the curriculum
 
     overrides = dict(sets)
     overrides["method"] = method
@@ -64,7 +66,8 @@ def run_register(data: Path, out: Path, cfg, fmt, gt, resume: bool, plots: bool 
     with progress_bar(not quiet) as cb:
         try:
             result = register(scans, cfg, checkpoint=out / "checkpoint.pt", resume=resume,
-                              on_log=cb.log, on_epoch=cb.epoch, on_icp_progress=cb.icp)
+                              on_log=cb.log, on_epoch=cb.epoch, on_icp_progress=cb.icp,
+                              on_place=cb.place)
         except Interrupted:
             console.print(f"[yellow]interrupted:[/] checkpoint saved; continue with "
                           f"`deepmapping register {data} --out {out} --resume`")

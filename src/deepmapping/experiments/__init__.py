@@ -22,6 +22,7 @@ EXPERIMENTS = {  # NAME -> module under deepmapping.experiments
     "warm-start": "warm_start",
     "ablations": "ablations",
     "1d": "one_d",
+    "robustness": "robustness",
 }
 
 

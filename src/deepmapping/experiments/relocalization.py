@@ -50,7 +50,7 @@ from deepmapping.experiments.base import Job
 
 FUNC = "deepmapping.experiments.relocalization:relocalize"
 # cold start + scan-only L-Net on top of the default profile (see the module docstring)
-OVERRIDES = {"warm_start.method": "none", "lnet.pose_input_freqs": 0, "lnet.lr_factor": 1.0,
+OVERRIDES = {"warm_start.method": "none", "curriculum.enabled": "off", "lnet.pose_input_freqs": 0, "lnet.lr_factor": 1.0,
              "mnet.coarse_to_fine": 0.5, "loss.chamfer_weight": 50.0, "loss.chamfer_window": 2}
 HEADINGS = ("nearest", "random")
 BINS = ((0.0, 16.0), (16.0, 64.0), (64.0, float("inf")))  # distance to the trajectory (px)

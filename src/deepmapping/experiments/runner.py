@@ -2,32 +2,40 @@
 
 from __future__ import annotations
 
+import fnmatch
 import json
 import time
 from pathlib import Path
 
+from deepmapping.errors import ConfigError
 from deepmapping.experiments import experiment_module
-from deepmapping.experiments.sweep import run_sweep
+from deepmapping.experiments.sweep import load_finished, run_sweep
 from deepmapping.io.atomic import atomic_write
 
 
 def run_experiment(name: str, out: str | Path, *, quick: bool = False, workers: int | None = None,
-                   threads: int = 1, cluster: str | None = None, retries: int = 1, progress=None) -> dict:
+                   threads: int = 1, cluster: str | None = None, retries: int = 1, progress=None,
+                   only: str | None = None) -> dict:
     """Run experiment ``name`` into ``out``; return {"report", "results", "errors", "wall_s"}.
 
     Finished runs in ``out/runs`` are kept and not redone; the report is rewritten from all
-    results each time (runs that failed are listed in it).
+    results each time (runs that failed are listed in it). ``only``: a shell pattern; only the
+    runs whose key matches it are run (the report uses every finished run all the same).
     """
     module = experiment_module(name)
+    jobs = module.jobs(quick)
+    chosen = [j for j in jobs if only is None or fnmatch.fnmatchcase(j.key, only)]
+    if not chosen:
+        raise ConfigError(f"--only {only!r} matches none of the {len(jobs)} runs of experiment {name}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    jobs = module.jobs(quick)
     t0 = time.perf_counter()
-    results, errors = run_sweep(jobs, out, workers=workers, threads=threads, cluster=cluster, retries=retries,
-                                progress=progress)
+    _, errors = run_sweep(chosen, out, workers=workers, threads=threads, cluster=cluster, retries=retries,
+                          progress=progress)
+    results = load_finished(out, jobs)
     wall = time.perf_counter() - t0
-    settings = {"experiment": name, "quick": quick, "jobs": len(jobs), "workers": workers, "threads": threads,
-                "cluster": cluster, "sweep_wall_s": wall, "failed": sorted(errors)}
+    settings = {"experiment": name, "quick": quick, "jobs": len(jobs), "only": only, "workers": workers,
+                "threads": threads, "cluster": cluster, "sweep_wall_s": wall, "failed": sorted(errors)}
     atomic_write(out / "experiment.json", lambda f: f.write(json.dumps(settings, indent=1).encode()))
     report = module.report(out, results, quick)
     if errors:

@@ -154,9 +154,10 @@ def report(out: Path, results: dict[str, dict], quick: bool) -> Path:
             f"`{PROFILE}`, {s['epochs']} epochs, ATE logged every {s['eval_every']} epochs")
     sections = [
         f"{'Quick smoke run (not the paper sizes): ' if quick else ''}{size}. Cold start: every pose "
-        "starts at the origin (warm_start.method none); warm starts: incremental ICP, point-to-plane "
-        "and point-to-point. The paper (Fig. 1) shows the warm-started DeepMapping converging much "
-        "faster and to a lower error than the cold start.",
+        "starts at the origin (warm_start.method none), and the curriculum places the scans first with "
+        "the paper's loss (docs/method.md, \"Cold start\"; its optimizer steps count in the iterations); "
+        "warm starts: incremental ICP, point-to-plane and point-to-point. The paper (Fig. 1) shows the "
+        "warm-started DeepMapping converging much faster and to a lower error than the cold start.",
         image("ate_vs_iterations.png", "ATE against iterations"),
         "## Final ATE\n\n" + table,
         "## Per run\n\n" + markdown_table(["trajectory", "start", "start ATE (px)", "final ATE (px)", "runtime (s)"],

@@ -22,6 +22,8 @@ def save(path, trainer) -> None:
         "epoch": st.epoch,
         "step": st.step,
         "elapsed_s": st.elapsed_s,
+        "placed": st.placed,
+        "curriculum_steps": st.curriculum_steps,
         "history": st.history,
         "config": trainer.cfg.model_dump(),
         **trainer.extra,
@@ -45,3 +47,4 @@ def restore(trainer, data: dict) -> None:
     trainer.gen.set_state(data["generator"])
     st = trainer.state
     st.epoch, st.step, st.elapsed_s, st.history = data["epoch"], data["step"], data["elapsed_s"], data["history"]
+    st.placed, st.curriculum_steps = data.get("placed", 0), data.get("curriculum_steps", 0)

@@ -12,6 +12,7 @@ import torch
 
 from deepmapping.config import Config
 from deepmapping.solver import checkpoint as ckpt
+from deepmapping.solver import curriculum
 from deepmapping.solver.geometry import transform
 from deepmapping.solver.loss import chamfer_loss, occupancy_bce
 from deepmapping.solver.model import DeepMappingModel
@@ -35,6 +36,8 @@ class TrainState:
     epoch: int = 0
     step: int = 0
     elapsed_s: float = 0.0
+    placed: int = 0  # cold-start curriculum: scans placed so far
+    curriculum_steps: int = 0  # steps taken by the curriculum (before the learning-rate schedule)
     history: dict = field(default_factory=lambda: {k: [] for k in ckpt.HISTORY_KEYS})
 
 
@@ -56,17 +59,24 @@ class Trainer:
         self.evaluate = evaluate
         self.device = valid.device
         self.gen = torch.Generator(device=self.device).manual_seed(cfg.seed)
-        self.opt = torch.optim.Adam(model.param_groups(), lr=cfg.optim.lr)
+        self.use_curriculum = curriculum.enabled(cfg, model, ordered)
+        self.reset_optimizer()
         k = valid.shape[0]
         self.steps_per_epoch = len(epoch_batches(k, cfg.optim.batch_size, np.random.default_rng(0)))
         self.total_steps = cfg.optim.epochs * self.steps_per_epoch
         self.state = TrainState()
         self.extra: dict = {}  # saved with every checkpoint (e.g. the warm start and the frame)
+        self._t_start = time.perf_counter()
+        self._last_ckpt = time.perf_counter()
+
+    def reset_optimizer(self) -> None:
+        """A fresh Adam over what produces the poses (L-Net or free poses) and the M-Net."""
+        self.opt = torch.optim.Adam(self.model.param_groups(), lr=self.cfg.optim.lr)
 
     # -- one step -----------------------------------------------------------------------
     def lr_at(self, step: int) -> float:
         lo = self.cfg.optim.lr_final_factor
-        frac = min(step / max(self.total_steps, 1), 1.0)
+        frac = min(max(step - self.state.curriculum_steps, 0) / max(self.total_steps, 1), 1.0)
         return self.cfg.optim.lr * (lo + (1 - lo) * 0.5 * (1 + math.cos(math.pi * frac)))
 
     def loss(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -92,9 +102,10 @@ class Trainer:
         ch = chamfer_loss(transform(poses, scans), valid, idx, cfg.chamfer_window, occ_global, pv)
         return bce + self.cfg.loss.chamfer_weight * ch, bce, ch
 
-    def step(self, idx: np.ndarray) -> tuple[float, float, float]:
-        lr = self.lr_at(self.state.step)
-        warmup = self.state.epoch < self.cfg.optim.mnet_warmup_epochs
+    def step(self, idx: np.ndarray, lr: float | None = None) -> tuple[float, float, float]:
+        """One optimizer step on the scans ``idx``; ``lr``: a constant rate instead of the schedule."""
+        lr = self.lr_at(self.state.step) if lr is None else lr
+        warmup = self.state.epoch < self.cfg.optim.mnet_warmup_epochs and not self.use_curriculum_now()
         for g in self.opt.param_groups:
             g["lr"] = 0.0 if (warmup and g["name"] == "poses") else lr * g["lr_factor"]
         total, bce, ch = self.loss(torch.as_tensor(idx, device=self.device))
@@ -104,17 +115,34 @@ class Trainer:
         self.state.step += 1
         return total.item(), bce.item(), ch.item()
 
+    def use_curriculum_now(self) -> bool:
+        return self.use_curriculum and self.state.placed < self.valid.shape[0]
+
+    def log_now(self, loss: float, bce: float, ch: float, on_log=None) -> np.ndarray:
+        self.state.elapsed_s = time.perf_counter() - self._t_start
+        return self._log(self.state.step, loss, bce, ch, self.state.elapsed_s, on_log)
+
+    def maybe_checkpoint(self, path, force: bool = False) -> None:
+        if path and (force or time.perf_counter() - self._last_ckpt > self.cfg.optim.checkpoint_every_s):
+            self.state.elapsed_s = time.perf_counter() - self._t_start
+            ckpt.save(path, self)
+            self._last_ckpt = time.perf_counter()
+
     # -- the loop -----------------------------------------------------------------------
     def run(self, checkpoint_path=None, on_log: Callable[[dict], None] | None = None,
-            on_epoch: Callable[[int, int, float], None] | None = None) -> TrainState:
+            on_epoch: Callable[[int, int, float], None] | None = None,
+            on_place: Callable[[int, int], None] | None = None) -> TrainState:
         cfg, st = self.cfg.optim, self.state
         k = self.valid.shape[0]
-        t_start = time.perf_counter() - st.elapsed_s
-        last_ckpt = time.perf_counter()
-        prev_poses = self.model.all_poses().cpu().numpy() if cfg.early_stop_tol else None
+        t_start = self._t_start = time.perf_counter() - st.elapsed_s
+        last_ckpt = self._last_ckpt = time.perf_counter()
         if st.epoch == 0 and not st.history["iteration"]:
             self._log(0, float("nan"), float("nan"), float("nan"), 0.0, on_log)
         try:
+            if self.use_curriculum_now():
+                curriculum.run(self, checkpoint_path, on_log, on_place)
+                last_ckpt = self._last_ckpt
+            prev_poses = self.model.all_poses().cpu().numpy() if cfg.early_stop_tol else None
             while st.epoch < cfg.epochs:
                 self._anneal_mnet()
                 rng = np.random.default_rng([self.cfg.seed, st.epoch])
