@@ -123,6 +123,7 @@ def runs(tmp_path_factory, data16) -> dict[str, tuple[Path, subprocess.Completed
             "deepmapping": [*reg, "--method", "deepmapping", *dm_args, "--out", folder / "R2"],
             "deepmapping-again": [*reg, "--method", "deepmapping", *dm_args, "--no-plots", "--out", folder / "R2b"],
             "direct": [*reg, "--method", "direct", *TINY, "--out", folder / "R3"],
+            "cold": [*reg, "--warm-start", "none", *TINY, "--out", folder / "R4"],
         }
         results = dm_many(jobs)
         return {name: {"out": str(jobs[name][-1]), **_to_json(res)} for name, res in results.items()}
@@ -185,6 +186,20 @@ def test_register_writes_run_folder(runs, method):
     assert info["method"] == method and info["num_scans"] == NUM_POSES
     assert yaml.safe_load((out / "config.yaml").read_text())["method"] == method
     assert (out / "map.ply").read_bytes().startswith(b"ply")
+
+
+def test_register_warm_start_none_is_the_cold_profile_with_its_curriculum(runs):
+    out, res = runs["cold"]
+    ok(res)
+    missing = [f for f in COMMON_FILES + TRAINED_FILES if not (out / f).is_file()]
+    assert not missing, missing
+    cfg = yaml.safe_load((out / "config.yaml").read_text())
+    assert cfg["profile"] == "cold" and cfg["warm_start"]["method"] == "none"
+    assert cfg["curriculum"]["enabled"] == "on"
+    history = np.genfromtxt(out / "history.csv", delimiter=",", names=True)
+    assert (history["epoch"] == 0).sum() >= 2  # the curriculum's logs come before the first epoch
+    assert np.all(np.diff(history["iteration"]) > 0)
+    assert np.isfinite(json.loads((out / "metrics.json").read_text())["ate"])
 
 
 def test_register_no_plots_skips_pictures(runs):
