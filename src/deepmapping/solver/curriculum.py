@@ -1,8 +1,8 @@
 """Cold start by curriculum: scans enter the map one chunk at a time (§3.4, the SLAM setting).
 
 No initial poses and no classical registration. Each new scan is placed by the paper's own
-loss: where its predecessor is, moved on by the last motion, turned by the best of a few
-random headings (the lowest eq. 4 + lambda x Chamfer), then refined by gradient steps of that
+loss: the lowest (eq. 4 + lambda x Chamfer) of random hypotheses near its predecessor,
+then refined by gradient steps of that
 loss together with the M-Net. When every scan is placed, the placements become the warm start
 (§3.5) of ordinary training: T_i = T_place,i ∘ f_theta(S_i). See docs/method.md ("Cold start").
 """
@@ -154,7 +154,5 @@ def hand_over(trainer: Trainer) -> None:
             model.init_poses.copy_(model.direct_poses)
         model.direct_poses = None
         if trainer.cfg.lnet.feature_norm:
-            k = model.scans.shape[0]
-            spread = torch.linspace(0, k - 1, min(k, 512), device=model.scans.device).long()
-            model.lnet.calibrate(model.lnet_scans[spread], model.init_poses[spread])
+            model.calibrate_lnet()
     trainer.reset_optimizer()

@@ -47,10 +47,14 @@ class DeepMappingModel(nn.Module):
         self.direct_poses: nn.Parameter | None = None
         self.mnet_lr_factor = cfg.mnet.lr_factor
         self.lnet_lr_factor = cfg.lnet.lr_factor
-        if cfg.lnet.feature_norm:  # statistics from (an even spread of at most 512 of) all scans
-            k = scans.shape[0]
-            spread = torch.linspace(0, k - 1, min(k, 512), device=scans.device).long()
-            self.lnet.calibrate(lnet_in[spread], init_poses[spread])
+        if cfg.lnet.feature_norm:
+            self.calibrate_lnet()
+
+    def calibrate_lnet(self) -> None:
+        """Standardization statistics from (an even spread of at most 512 of) all scans and their init poses."""
+        k = self.scans.shape[0]
+        spread = torch.linspace(0, k - 1, min(k, 512), device=self.scans.device).long()
+        self.lnet.calibrate(self.lnet_scans[spread], self.init_poses[spread])
 
     def _with_correction(self, idx: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
         return self._compose(self.init_poses[idx], out, None if self.pivot is None else self.pivot[idx])

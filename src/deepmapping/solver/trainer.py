@@ -134,14 +134,13 @@ class Trainer:
             on_place: Callable[[int, int], None] | None = None) -> TrainState:
         cfg, st = self.cfg.optim, self.state
         k = self.valid.shape[0]
-        t_start = self._t_start = time.perf_counter() - st.elapsed_s
-        last_ckpt = self._last_ckpt = time.perf_counter()
+        self._t_start = time.perf_counter() - st.elapsed_s
+        self._last_ckpt = time.perf_counter()
         if st.epoch == 0 and not st.history["iteration"]:
             self._log(0, float("nan"), float("nan"), float("nan"), 0.0, on_log)
         try:
             if self.use_curriculum_now():
                 curriculum.run(self, checkpoint_path, on_log, on_place)
-                last_ckpt = self._last_ckpt
             prev_poses = self.model.all_poses().cpu().numpy() if cfg.early_stop_tol else None
             while st.epoch < cfg.epochs:
                 self._anneal_mnet()
@@ -153,7 +152,7 @@ class Trainer:
                 st.epoch += 1
                 if on_epoch:
                     on_epoch(st.epoch, cfg.epochs, sums[0] / len(batches))
-                st.elapsed_s = time.perf_counter() - t_start
+                st.elapsed_s = time.perf_counter() - self._t_start
                 out_of_time = cfg.max_time_s is not None and st.elapsed_s >= cfg.max_time_s
                 last = st.epoch >= cfg.epochs or out_of_time
                 if st.epoch % cfg.eval_every == 0 or last:
@@ -163,13 +162,11 @@ class Trainer:
                         moved = np.abs(_positions(poses) - _positions(prev_poses)).max()
                         prev_poses = poses
                         last = last or moved < cfg.early_stop_tol
-                if checkpoint_path and (last or time.perf_counter() - last_ckpt > cfg.checkpoint_every_s):
-                    ckpt.save(checkpoint_path, self)
-                    last_ckpt = time.perf_counter()
+                self.maybe_checkpoint(checkpoint_path, force=last)
                 if last:
                     break
         except KeyboardInterrupt:
-            st.elapsed_s = time.perf_counter() - t_start
+            st.elapsed_s = time.perf_counter() - self._t_start
             if checkpoint_path:
                 ckpt.save(checkpoint_path, self)
             raise Interrupted(checkpoint_path) from None
