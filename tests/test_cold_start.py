@@ -144,3 +144,61 @@ def test_curriculum_run_is_reproducible_from_the_seed(hard_trajectory):
     a = register(hard_trajectory, _cold(**{"optim.epochs": 2})).poses
     b = register(hard_trajectory, _cold(**{"optim.epochs": 2})).poses
     np.testing.assert_array_equal(a, b)
+
+
+# -- planar 3D poses (AVD-like depth images): opt-in ---------------------------------------------
+
+
+def _planar_model(pivot: str):
+    from deepmapping.core import se3
+    from deepmapping.solver.model import DeepMappingModel
+
+    rng = np.random.default_rng(0)
+    scans = torch.as_tensor(rng.uniform(-1, 1, (3, 40, 3)) + [0, 0, 2], dtype=torch.float32)
+    valid = torch.ones(3, 40, dtype=torch.bool)
+    init = torch.as_tensor(se3.from_planar_xz([[0.1, 0.2, 0.3], [0.0, -0.1, 1.0], [0.3, 0.3, -2.0]]),
+                           dtype=torch.float32)
+    cfg = load_config("default-3d", overrides={"lnet.pivot": pivot, "threads": 1})
+    model = DeepMappingModel(cfg, scans, init, valid=valid, pose_dof=3)
+    model.make_direct()
+    return model
+
+
+@pytest.mark.parametrize("pivot", ["sensor", "centroid"])
+def test_planar_3d_placements_round_trip(pivot):
+    """A placement written as a planar pose [z, x, heading] is read back the same, whatever the
+    warm start and the pivot the model composes its corrections with."""
+    from deepmapping.solver import curriculum
+
+    model = _planar_model(pivot)
+    target = np.array([0.4, -0.7, 2.5])
+    curriculum.set_placement(model, range(1, 3), target)
+    for j in (1, 2):
+        assert np.allclose(curriculum.placement(model, j), target, atol=1e-5)
+        pose = model.all_poses()[j].double().numpy()  # a turn about the vertical axis, no height change
+        assert np.isclose(pose[1, 3], 0.0, atol=1e-5) and np.isclose(pose[1, 1], 1.0, atol=1e-5)
+    assert not np.allclose(curriculum.placement(model, 0), target)
+
+
+def test_truncated_chamfer_caps_what_the_other_view_does_not_see():
+    from deepmapping.solver.curriculum import truncated_chamfer
+
+    x = torch.rand(1, 50, 3)
+    ones = torch.ones(1, 50, dtype=torch.bool)
+    assert float(truncated_chamfer(x, ones, x, ones, 0.1)) < 0.05  # cdist rounding
+    assert float(truncated_chamfer(x, ones, x + 10.0, ones, 0.1)) == pytest.approx(2.0)
+
+
+def test_curriculum_on_planar_3d_is_opt_in_and_refused_for_6dof():
+    from deepmapping.api import register
+    from deepmapping.experiments.exp_avd import avd_trajectory
+
+    scans = avd_trajectory(0, frames=6, width=16, height=12)
+    cfg = load_config("default-3d", overrides={"warm_start.method": "none", "optim.epochs": 2, "threads": 1})
+    assert register(scans, cfg).placements is None  # auto: not on depth images
+    res = register(scans, cfg.with_overrides({"curriculum.enabled": "on", "curriculum.steps": 3}))
+    assert res.placements is not None and np.allclose(res.placements[:, 1, 3], 0.0, atol=1e-4)
+    assert np.isfinite(res.metrics["ate"])
+    six = scans.__class__(**{**scans.__dict__, "pose_dof": 6})
+    with pytest.raises(ConfigError, match="6-DoF"):
+        register(six, cfg.with_overrides({"curriculum.enabled": "on"}))

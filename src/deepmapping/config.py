@@ -116,6 +116,14 @@ class CurriculumConfig(_Section):
     rounds: int = Field(3, ge=1)  # rounds of hypotheses, each around the best with half the spread
     # hypotheses are ranked by select_bce_weight x eq. 4 + loss.chamfer_weight x Chamfer
     select_bce_weight: float = Field(1.0, ge=0)
+    # hypotheses are ranked on at most this many points of each scan (dense depth images: a
+    # fixed random subset of the valid ones; 2D scans of <= 512 beams: all)
+    select_points: int = Field(512, ge=16)
+    # > 0: rank by select_bce_weight x eq. 4 + select_chamfer_weight x the Chamfer distance with
+    # each nearest-neighbour distance capped at select_truncate x the scan's median range (and
+    # divided by that cap); for views that overlap only in part (depth images)
+    select_truncate: float = Field(0.0, ge=0)
+    select_chamfer_weight: float = Field(1.0, ge=0)
     log_every: int = Field(8, ge=1)  # log (loss, ATE) every N stages
 
 

@@ -17,45 +17,133 @@ import torch
 
 from deepmapping.core import se2
 from deepmapping.errors import ConfigError
-from deepmapping.solver.geometry import transform
+from deepmapping.solver.geometry import planar_matrix, transform, translation
 from deepmapping.solver.loss import chamfer
 
 if TYPE_CHECKING:
     from deepmapping.solver.trainer import Trainer
 
 
+def supported(model) -> bool:
+    """2D scans, or 3D scans with planar (3-DoF, AVD-like) poses: the curriculum places by x, y, heading."""
+    return not model.is_3d or model.lnet.out.out_features == 3
+
+
 def enabled(cfg, model, ordered: bool) -> bool:
     """Whether this run places its scans by the curriculum first (``curriculum.enabled``)."""
+    # "auto": 2D only; on planar 3D poses (AVD-like) it is opt-in ("on"), not yet better than the
+    # identity there (docs/method.md, "Cold start on depth images")
     on = cfg.curriculum.enabled == "on" or (
         cfg.curriculum.enabled == "auto" and cfg.warm_start.method == "none" and ordered and not model.is_3d)
-    if on and model.is_3d:
-        raise ConfigError("curriculum: the cold-start curriculum is implemented for 2D scans only")
+    if on and not supported(model):
+        raise ConfigError("curriculum: the cold-start curriculum is implemented for 2D scans and planar "
+                          "(3-DoF) 3D poses only, not 6-DoF")
     if on and not cfg.lnet.zero_init_output:
         raise ConfigError("curriculum: needs lnet.zero_init_output = true (the L-Net starts at the placements)")
     return on
 
 
+# -- placements as planar poses ---------------------------------------------------------------
+# The curriculum reasons in planar poses [a, b, heading] (core.se2). 2D: the scans' own [x, y,
+# theta]. 3D (AVD-like, y vertical): [z, x, theta about y], the order in which a turn about y is
+# a counter-clockwise se2 rotation; the placements themselves are the model's free planar
+# corrections (model.make_direct), converted here.
+
+
+def _se2_of(m: torch.Tensor) -> torch.Tensor:
+    """(..., 4, 4) planar matrices -> (..., 3) [z, x, theta]."""
+    return torch.stack([m[..., 2, 3], m[..., 0, 3], torch.atan2(m[..., 0, 2], m[..., 0, 0])], dim=-1)
+
+
+def _matrix_of(p: torch.Tensor) -> torch.Tensor:
+    """(H, 3) [z, x, theta] -> (H, 4, 4) (planar_matrix takes [x, z, theta])."""
+    return planar_matrix(p[:, [1, 0, 2]])
+
+
+def placement(model, j: int) -> np.ndarray:
+    """Where scan j is placed now, as a planar pose (3,)."""
+    if not model.is_3d:
+        return model.direct_poses[j].detach().double().cpu().numpy()
+    with torch.no_grad():
+        return _se2_of(model.poses(torch.tensor([j], device=model.scans.device))[0].double()).cpu().numpy()
+
+
+def candidate_poses(model, cands: np.ndarray) -> torch.Tensor:
+    """Planar poses (H, 3) -> what ``transform`` takes: (H, 3) in 2D, (H, 4, 4) in 3D."""
+    t = torch.as_tensor(cands, dtype=model.scans.dtype, device=model.scans.device)
+    return _matrix_of(t) if model.is_3d else t
+
+
+@torch.no_grad()
+def set_placement(model, idx: range, pose: np.ndarray) -> None:
+    """Place the scans ``idx`` at the planar pose ``pose`` (3,)."""
+    dp = model.direct_poses
+    if len(idx) == 0:
+        return
+    target = torch.as_tensor(pose, dtype=dp.dtype, device=dp.device)
+    if not model.is_3d:
+        dp[idx.start: idx.stop] = target
+        return
+    # 3D: T = T_init @ Tr(p) @ P(v) @ Tr(-p) = G  =>  P(v) = Tr(-p) @ T_init^-1 @ G @ Tr(p)
+    sel = torch.arange(idx.start, idx.stop, device=dp.device)
+    g = _matrix_of(target[None]).expand(len(sel), 4, 4)
+    m = torch.linalg.inv(model.init_poses[sel]) @ g
+    if model.pivot is not None:
+        p = model.pivot[sel]
+        m = translation(-p) @ m @ translation(p)
+    dp[idx.start: idx.stop] = torch.stack([m[:, 0, 3], m[:, 2, 3], torch.atan2(m[:, 0, 2], m[:, 0, 0])], dim=-1)
+
+
+def selection_points(model, valid: torch.Tensor, j: int, cap: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Scan j's points and validity for ranking hypotheses: all beams, or (dense scans, e.g. depth
+    images) ``cap`` of its valid points, drawn once per scan."""
+    scan, v = model.scans[j], valid[j]
+    if scan.shape[0] <= cap:
+        return scan, v
+    ok = torch.nonzero(v).flatten()
+    g = torch.Generator().manual_seed(j)
+    pick = ok[torch.randperm(len(ok), generator=g)[:cap].to(ok.device)]
+    return scan[pick], v[pick]
+
+
 # -- one new scan ------------------------------------------------------------------------------
 
 
-def candidate_losses(model, valid: torch.Tensor, j: int, candidates: torch.Tensor, prev_pose: torch.Tensor,
-                     chamfer_weight: float, bce_weight: float = 1.0, free_samples: int = 4) -> torch.Tensor:
-    """The loss of scan ``j`` placed at each of ``candidates`` (H, 3): eq. 4 under the current
-    M-Net (all its beams, stratified free-space samples at fixed fractions) + lambda x Chamfer
-    (eq. 5) to scan j - 1 at ``prev_pose`` (3,)."""
+def truncated_chamfer(x: torch.Tensor, xv: torch.Tensor, y: torch.Tensor, yv: torch.Tensor, r: float) -> torch.Tensor:
+    """Eq. 5 with each nearest-neighbour distance capped at ``r``, divided by ``r`` -> (P,) in [0, 2].
+    Parts of two partially overlapping views that the other does not see cost a constant instead
+    of pulling the views together (depth images with a 60 deg field of view)."""
+    d = torch.cdist(x, y)
+    d = d.masked_fill(~yv[:, None, :], math.inf).masked_fill(~xv[:, :, None], math.inf)
+    wx, wy = xv.to(x.dtype), yv.to(x.dtype)
+    ax = (d.min(2).values.clamp(max=r) * wx).sum(1) / wx.sum(1).clamp(min=1)
+    ay = (d.min(1).values.clamp(max=r) * wy).sum(1) / wy.sum(1).clamp(min=1)
+    return (ax + ay) / r
+
+
+def candidate_losses(model, pts: tuple, j: int, candidates: torch.Tensor, prev: tuple | None,
+                     chamfer_weight: float, bce_weight: float = 1.0, free_samples: int = 4,
+                     truncate: float | None = None) -> torch.Tensor:
+    """The loss of scan ``j`` (``pts`` = its points and validity) placed at each of ``candidates``
+    (H, 3) or (H, 4, 4): eq. 4 under the current M-Net (every given beam, stratified free-space
+    samples at fixed fractions) + lambda x Chamfer (eq. 5) to ``prev`` (the predecessor's points
+    in the global frame and validity; None for the first scan), or lambda x the truncated
+    Chamfer distance when ``truncate`` (the cap, in the points' units) is given."""
     h = candidates.shape[0]
-    scan, vj = model.scans[j][None].expand(h, -1, -1), valid[j][None].expand(h, -1)
-    occ = transform(candidates, scan)  # (H, N, 2)
+    scan, vj = pts[0][None].expand(h, -1, -1), pts[1][None].expand(h, -1)
+    occ = transform(candidates, scan)  # (H, N, D)
     t = (torch.arange(free_samples, device=scan.device, dtype=scan.dtype) + 0.5) / free_samples
-    free = transform(candidates, scan[:, :, None, :] * t[None, None, :, None])  # (H, N, S, 2)
+    free = transform(candidates, scan[:, :, None, :] * t[None, None, :, None])  # (H, N, S, D)
     nll_occ = torch.nn.functional.softplus(-model.mnet(occ))  # BCE against 1
     nll_free = torch.nn.functional.softplus(model.mnet(free)).mean(-1)  # BCE against 0
     w = vj.to(scan.dtype)
     bce = bce_weight * ((nll_occ + nll_free) * w).sum(1) / w.sum(1).clamp(min=1)
-    if chamfer_weight <= 0 or j == 0:
+    if chamfer_weight <= 0 or prev is None:
         return bce
-    prev = transform(prev_pose[None], model.scans[j - 1][None]).expand(h, -1, -1)
-    return bce + chamfer_weight * chamfer(occ, vj, prev, valid[j - 1][None].expand(h, -1))
+    if truncate:
+        pv = prev[1][None].expand(h, -1)
+        return bce + chamfer_weight * truncated_chamfer(occ, vj, prev[0][None].expand(h, -1, -1), pv, truncate)
+    return bce + chamfer_weight * chamfer(occ, vj, prev[0][None].expand(h, -1, -1), prev[1][None].expand(h, -1))
 
 
 @torch.no_grad()
@@ -68,18 +156,25 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
     the scan's median range (the first of each half neither turned nor shifted). Each further
     round draws around the best so far with half the spread; the best so far stays a candidate.
     """
-    cfg, poses = trainer.cfg.curriculum, trainer.model.direct_poses
+    cfg, model = trainer.cfg.curriculum, trainer.model
     if j == 0:
         return
-    prev = poses[j - 1].double().cpu().numpy()
-    motion = se2.relative(poses[j - 2].double().cpu().numpy(), prev) if j >= 2 else np.zeros(3)
+    prev = placement(model, j - 1)
+    motion = se2.relative(placement(model, j - 2), prev) if j >= 2 else np.zeros(3)
     rng = np.random.default_rng([trainer.cfg.seed, j])
     h, half = cfg.hypotheses, (cfg.hypotheses + 1) // 2
     centres = np.where(np.arange(h)[:, None] < half, se2.compose(prev, motion), prev)
     keep = np.ones(h, bool)
     keep[[0, half % h]] = False  # the two plain centres
-    scan = trainer.model.scans[j][trainer.valid[j]]
-    shift = cfg.max_shift * float(scan.norm(dim=1).median())
+    pts = selection_points(model, trainer.valid, j, cfg.select_points)
+    prev_pts, prev_valid = selection_points(model, trainer.valid, j - 1, cfg.select_points)
+    prev_glob = (transform(candidate_poses(model, prev[None]), prev_pts[None])[0], prev_valid)
+    median_range = float(pts[0][pts[1]].norm(dim=1).median())
+    shift = cfg.max_shift * median_range
+    if cfg.select_truncate > 0:
+        ch_weight, truncate = cfg.select_chamfer_weight, cfg.select_truncate * median_range
+    else:
+        ch_weight, truncate = trainer.cfg.loss.chamfer_weight, None
     turn = math.radians(cfg.max_turn_deg)
     best, best_loss = None, math.inf
     for _ in range(cfg.rounds):
@@ -89,15 +184,14 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
         cands = se2.compose(centres, delta)
         if best is not None:
             cands[0] = best
-        cands_t = torch.as_tensor(cands, dtype=poses.dtype, device=poses.device)
-        losses = candidate_losses(trainer.model, trainer.valid, j, cands_t, poses[j - 1],
-                                  trainer.cfg.loss.chamfer_weight, cfg.select_bce_weight)
+        losses = candidate_losses(model, pts, j, candidate_poses(model, cands), prev_glob, ch_weight,
+                                  cfg.select_bce_weight, truncate=truncate)
         i = int(torch.argmin(losses))
         if float(losses[i]) <= best_loss:
             best, best_loss = cands[i], float(losses[i])
         centres, keep = np.broadcast_to(best, (h, 3)), np.arange(h) > 0
         shift, turn = shift / 2, turn / 2
-    poses[j:] = torch.as_tensor(best, dtype=poses.dtype, device=poses.device)  # unplaced scans wait there too
+    set_placement(model, range(j, model.scans.shape[0]), best)  # unplaced scans wait there too
 
 
 def stage_batch(n: int, cfg, rng: np.random.Generator) -> np.ndarray:
@@ -129,8 +223,7 @@ def run(trainer: Trainer, checkpoint_path=None, on_log: Callable | None = None,
         sums = np.zeros(3)
         for _ in range(cfg.steps if n > 1 else 0):
             sums += trainer.step(stage_batch(n, cfg, rng), lr=cfg.lr)
-        with torch.no_grad():  # scans not placed yet wait at the newest placement
-            model.direct_poses[n:] = model.direct_poses[n - 1]
+        set_placement(model, range(n, k), placement(model, n - 1))  # unplaced scans wait at the newest
         st.curriculum_steps = st.step
         stage += 1
         if on_place:
@@ -151,7 +244,7 @@ def hand_over(trainer: Trainer) -> None:
     model = trainer.model
     if trainer.cfg.method != "direct":
         with torch.no_grad():
-            model.init_poses.copy_(model.direct_poses)
+            model.init_poses.copy_(model.all_poses())
         model.direct_poses = None
         if trainer.cfg.lnet.feature_norm:
             model.calibrate_lnet()
