@@ -73,6 +73,38 @@ def test_a_new_scan_is_placed_at_the_turn_and_shift_the_loss_prefers():
     assert all(t < 5.0 and r < 3.0 for t, r in errors), errors
 
 
+def test_refining_the_best_hypotheses_never_ends_higher():
+    """curriculum.refine_top: the chosen placement's loss is at most the one of the plain
+    ranking (the unrefined hypotheses stay candidates), and it is still at the true motion."""
+    from deepmapping.sim.dataset import simulate
+    from deepmapping.sim.maps import procedural_indoor_map
+    from deepmapping.solver import curriculum
+    from deepmapping.solver.model import DeepMappingModel
+    from deepmapping.solver.trainer import Trainer
+
+    scans = simulate(procedural_indoor_map(1, size=512), 2, seed=1, num_beams=128, mean_step_px=6,
+                     max_rotation_deg=25)
+    pts, valid = torch.as_tensor(scans.points, dtype=torch.float32), torch.as_tensor(scans.valid)
+    out = {}
+    for top in (0, 4):
+        cfg = _cold(seed=1, **{"curriculum.refine_top": top, "curriculum.refine_steps": 10})
+        torch.manual_seed(0)
+        model = DeepMappingModel(cfg, pts, torch.zeros(2, 3), valid=valid)
+        trainer = Trainer(cfg, model, valid, ordered=True)
+        model.make_direct()
+        curriculum.place_new_scan(trainer, 1)
+        placed = curriculum.placement(model, 1)
+        with torch.no_grad():
+            prev = (curriculum.transform(model.direct_poses[:1], model.scans[:1])[0], valid[0])
+            loss = curriculum.candidate_losses(model, (model.scans[1], valid[1]), 1,
+                                               torch.as_tensor(placed[None], dtype=torch.float32), prev,
+                                               cfg.loss.chamfer_weight)
+        out[top] = (float(loss), se2.relative(se2.relative(scans.gt_poses[0], scans.gt_poses[1]), placed))
+    assert out[4][0] <= out[0][0] + 1e-6, out
+    d = out[4][1]
+    assert np.hypot(d[0], d[1]) * 512 < 5.0 and abs(np.degrees(d[2])) < 3.0, d
+
+
 @pytest.fixture(scope="module")
 def hard_trajectory():
     """16 scans with steps of about 30 px and turns of up to 30 deg (the paper's: 8 px, 10 deg)."""

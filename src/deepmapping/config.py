@@ -124,6 +124,11 @@ class CurriculumConfig(_Section):
     # divided by that cap); for views that overlap only in part (depth images)
     select_truncate: float = Field(0.0, ge=0)
     select_chamfer_weight: float = Field(1.0, ge=0)
+    # > 0: the refine_top best hypotheses (of all rounds) each take refine_steps Adam steps
+    # (lr refine_lr, normalized units) of the ranking loss before the final ranking
+    refine_top: int = Field(0, ge=0)
+    refine_steps: int = Field(20, ge=1)
+    refine_lr: float = Field(0.01, gt=0)
     log_every: int = Field(8, ge=1)  # log (loss, ATE) every N stages
 
 

@@ -68,7 +68,7 @@ def placement(model, j: int) -> np.ndarray:
         return _se2_of(model.poses(torch.tensor([j], device=model.scans.device))[0].double()).cpu().numpy()
 
 
-def candidate_poses(model, cands: np.ndarray) -> torch.Tensor:
+def candidate_poses(model, cands) -> torch.Tensor:
     """Planar poses (H, 3) -> what ``transform`` takes: (H, 3) in 2D, (H, 4, 4) in 3D."""
     t = torch.as_tensor(cands, dtype=model.scans.dtype, device=model.scans.device)
     return _matrix_of(t) if model.is_3d else t
@@ -177,6 +177,7 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
         ch_weight, truncate = trainer.cfg.loss.chamfer_weight, None
     turn = math.radians(cfg.max_turn_deg)
     best, best_loss = None, math.inf
+    seen_c, seen_l = [], []
     for _ in range(cfg.rounds):
         r = np.sqrt(rng.uniform(0, 1, h)) * shift * keep
         a = rng.uniform(0, 2 * np.pi, h)
@@ -186,12 +187,38 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
             cands[0] = best
         losses = candidate_losses(model, pts, j, candidate_poses(model, cands), prev_glob, ch_weight,
                                   cfg.select_bce_weight, truncate=truncate)
+        seen_c.append(cands)
+        seen_l.append(losses)
         i = int(torch.argmin(losses))
         if float(losses[i]) <= best_loss:
             best, best_loss = cands[i], float(losses[i])
         centres, keep = np.broadcast_to(best, (h, 3)), np.arange(h) > 0
         shift, turn = shift / 2, turn / 2
-    set_placement(model, range(j, model.scans.shape[0]), best)  # unplaced scans wait there too
+    if cfg.refine_top > 0:
+        score = lambda c: candidate_losses(model, pts, j, candidate_poses(model, c), prev_glob, ch_weight,  # noqa: E731
+                                           cfg.select_bce_weight, truncate=truncate)
+        best = refine(score, np.concatenate(seen_c), torch.cat(seen_l), cfg.refine_top, cfg.refine_steps,
+                      cfg.refine_lr, model.scans.dtype)
+    set_placement(model, range(j, model.scans.shape[0]), best)
+
+
+def refine(score: Callable, cands: np.ndarray, losses: torch.Tensor, top: int, steps: int, lr: float,
+           dtype) -> np.ndarray:
+    """The ``top`` lowest-loss hypotheses, each moved by ``steps`` Adam steps of the same loss
+    (the M-Net held), then ranked again: a hypothesis near the right basin gets to its bottom
+    before the ranking, one that only looked good at its starting point does not win. The
+    unrefined hypotheses stay in the final ranking, so refining never picks a higher loss."""
+    order = torch.argsort(losses)[:top].cpu().numpy()
+    p = torch.tensor(cands[order], dtype=dtype, requires_grad=True)
+    opt = torch.optim.Adam([p], lr=lr)
+    with torch.enable_grad():
+        for _ in range(steps):
+            (g,) = torch.autograd.grad(score(p).sum(), [p])
+            p.grad = g
+            opt.step()
+    both = torch.cat([p.detach(), torch.as_tensor(cands[order], dtype=dtype)])  # a step that made it worse loses
+    final = score(both)
+    return both[int(torch.argmin(final))].double().cpu().numpy()  # unplaced scans wait there too
 
 
 def stage_batch(n: int, cfg, rng: np.random.Generator) -> np.ndarray:
