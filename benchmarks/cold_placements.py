@@ -1,0 +1,88 @@
+"""Probe the cold-start curriculum's placements (docs/method.md, "Larger motions" and "Cold start
+on depth images"): the measurements that decide its settings, a few minutes each.
+
+    .venv/bin/python benchmarks/cold_placements.py robustness --trajectories 50,51,52,53,54 --stride 8
+    .venv/bin/python benchmarks/cold_placements.py robustness --stride 8 \\
+        --set curriculum.refine_top=8 --set curriculum.max_turn_deg=60 --set curriculum.hypotheses=64
+    .venv/bin/python benchmarks/cold_placements.py avd --trajectories 0,1,2 --set curriculum.select_truncate=0.05
+
+``robustness``: every ``stride``-th scan of the paper's 256-pose trajectories, profile ``cold``,
+one epoch after the curriculum: the ATE of the placements alone (what the 250 epochs start from;
+a failure there is a failure at the end). ``avd``: AVD-like depth images (``experiment avd``'s
+trajectories), profile ``default-3d`` from the identity with the curriculum on and the
+experiment's Chamfer weight, all epochs: ATE and rotation RMSE of the result and of the
+placements. One torch thread; prints one line per trajectory.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+import yaml
+
+
+def _overrides(sets: list[str]) -> dict:
+    out = {}
+    for s in sets:
+        key, _, value = s.partition("=")
+        out[key] = yaml.safe_load(value)
+    return out
+
+
+def robustness(trajectories: list[int], stride: int, extra: dict) -> None:
+    from deepmapping.api import evaluate_poses, register
+    from deepmapping.config import load_config
+    from deepmapping.sim.dataset import paper_trajectory
+
+    placed = []
+    for t in trajectories:
+        s = paper_trajectory(t)
+        s.points, s.valid, s.gt_poses, s.names = s.points[::stride], s.valid[::stride], s.gt_poses[::stride], \
+            s.names[::stride]
+        t0 = time.perf_counter()
+        r = register(s, load_config("cold", overrides={"optim.epochs": 1, "threads": 1} | extra))
+        placed.append(float(evaluate_poses(s, r.placements)["ate"]))
+        print(f"trajectory {t} stride {stride}: placed ATE {placed[-1]:.1f} px ({time.perf_counter() - t0:.0f} s)",
+              flush=True)
+    print(f"below 20 px: {sum(a < 20 for a in placed)} of {len(placed)}")
+
+
+def avd(trajectories: list[int], extra: dict) -> None:
+    from deepmapping.api import evaluate_poses, register
+    from deepmapping.config import load_config
+    from deepmapping.experiments.exp_avd import THRESHOLD_MM, avd_trajectory
+
+    for t in trajectories:
+        scans = avd_trajectory(t, 16, 0, 80, 60)
+        over = {"warm_start.method": "none", "curriculum.enabled": "on", "loss.chamfer_weight": 0.1,
+                "eval.success_threshold": THRESHOLD_MM, "threads": 1} | extra
+        t0 = time.perf_counter()
+        r = register(scans, load_config("default-3d", overrides=over))
+        p = evaluate_poses(scans, r.placements)
+        print(f"trajectory {t}: ATE {r.metrics['ate']:.0f} mm, rotation {r.metrics['rotation_rmse_deg']:.1f} deg "
+              f"(placed: {p['ate']:.0f} mm, {p['rotation_rmse_deg']:.1f} deg), {time.perf_counter() - t0:.0f} s",
+              flush=True)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("kind", choices=["robustness", "avd"])
+    ap.add_argument("--trajectories", default=None, help="comma-separated (robustness: 50-54, avd: 0-2)")
+    ap.add_argument("--stride", type=int, default=8)
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE")
+    a = ap.parse_args()
+    torch.set_num_threads(1)
+    default = "50,51,52,53,54" if a.kind == "robustness" else "0,1,2"
+    ts = [int(x) for x in (a.trajectories or default).split(",")]
+    np.set_printoptions(precision=3)
+    if a.kind == "robustness":
+        robustness(ts, a.stride, _overrides(a.sets))
+    else:
+        avd(ts, _overrides(a.sets))
+
+
+if __name__ == "__main__":
+    main()
