@@ -1,9 +1,8 @@
 """Cold start by curriculum: scans enter the map one chunk at a time (§3.4, the SLAM setting).
 
 No initial poses and no classical registration. Each new scan is placed by the paper's own
-loss: the lowest (eq. 4 + lambda x Chamfer) of random hypotheses near its predecessor,
-then refined by gradient steps of that
-loss together with the M-Net. When every scan is placed, the placements become the warm start
+loss: the lowest (eq. 4 + lambda x Chamfer) of random hypotheses near its predecessor, then
+refined by gradient steps of that loss together with the M-Net. When every scan is placed, the placements become the warm start
 (§3.5) of ordinary training: T_i = T_place,i ∘ f_theta(S_i). See docs/method.md ("Cold start").
 """
 
@@ -91,7 +90,7 @@ def set_placement(model, idx: range, pose: np.ndarray) -> None:
     if model.pivot is not None:
         p = model.pivot[sel]
         m = translation(-p) @ m @ translation(p)
-    dp[idx.start: idx.stop] = torch.stack([m[:, 0, 3], m[:, 2, 3], torch.atan2(m[:, 0, 2], m[:, 0, 0])], dim=-1)
+    dp[idx.start: idx.stop] = _se2_of(m)[:, [1, 0, 2]]  # corrections are [x, z, theta]
 
 
 def selection_points(model, valid: torch.Tensor, j: int, cap: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -140,10 +139,9 @@ def candidate_losses(model, pts: tuple, j: int, candidates: torch.Tensor, prev: 
     bce = bce_weight * ((nll_occ + nll_free) * w).sum(1) / w.sum(1).clamp(min=1)
     if chamfer_weight <= 0 or prev is None:
         return bce
-    if truncate:
-        pv = prev[1][None].expand(h, -1)
-        return bce + chamfer_weight * truncated_chamfer(occ, vj, prev[0][None].expand(h, -1, -1), pv, truncate)
-    return bce + chamfer_weight * chamfer(occ, vj, prev[0][None].expand(h, -1, -1), prev[1][None].expand(h, -1))
+    y, yv = prev[0][None].expand(h, -1, -1), prev[1][None].expand(h, -1)
+    ch = truncated_chamfer(occ, vj, y, yv, truncate) if truncate else chamfer(occ, vj, y, yv)
+    return bce + chamfer_weight * ch
 
 
 @torch.no_grad()
@@ -175,6 +173,11 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
         ch_weight, truncate = cfg.select_chamfer_weight, cfg.select_truncate * median_range
     else:
         ch_weight, truncate = trainer.cfg.loss.chamfer_weight, None
+
+    def score(c) -> torch.Tensor:
+        return candidate_losses(model, pts, j, candidate_poses(model, c), prev_glob, ch_weight,
+                                cfg.select_bce_weight, truncate=truncate)
+
     turn = math.radians(cfg.max_turn_deg)
     best, best_loss = None, math.inf
     seen_c, seen_l = [], []
@@ -185,8 +188,7 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
         cands = se2.compose(centres, delta)
         if best is not None:
             cands[0] = best
-        losses = candidate_losses(model, pts, j, candidate_poses(model, cands), prev_glob, ch_weight,
-                                  cfg.select_bce_weight, truncate=truncate)
+        losses = score(cands)
         seen_c.append(cands)
         seen_l.append(losses)
         i = int(torch.argmin(losses))
@@ -195,11 +197,9 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
         centres, keep = np.broadcast_to(best, (h, 3)), np.arange(h) > 0
         shift, turn = shift / 2, turn / 2
     if cfg.refine_top > 0:
-        score = lambda c: candidate_losses(model, pts, j, candidate_poses(model, c), prev_glob, ch_weight,  # noqa: E731
-                                           cfg.select_bce_weight, truncate=truncate)
         best = refine(score, np.concatenate(seen_c), torch.cat(seen_l), cfg.refine_top, cfg.refine_steps,
                       cfg.refine_lr, model.scans.dtype)
-    set_placement(model, range(j, model.scans.shape[0]), best)
+    set_placement(model, range(j, model.scans.shape[0]), best)  # unplaced scans wait there too
 
 
 def refine(score: Callable, cands: np.ndarray, losses: torch.Tensor, top: int, steps: int, lr: float,
@@ -218,7 +218,7 @@ def refine(score: Callable, cands: np.ndarray, losses: torch.Tensor, top: int, s
             opt.step()
     both = torch.cat([p.detach(), torch.as_tensor(cands[order], dtype=dtype)])  # a step that made it worse loses
     final = score(both)
-    return both[int(torch.argmin(final))].double().cpu().numpy()  # unplaced scans wait there too
+    return both[int(torch.argmin(final))].double().cpu().numpy()
 
 
 def stage_batch(n: int, cfg, rng: np.random.Generator) -> np.ndarray:
