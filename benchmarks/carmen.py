@@ -34,6 +34,14 @@ import numpy as np
 
 CARMEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "carmen"
 CORRECTED = {"intel": "intel-corrected.log.gz", "fr079": "freiburg-079-corrected.log.gz"}
+
+
+def log_file(data: Path, log: str) -> Path:
+    """``<log>.clf.bz2`` (../shared/data/carmen), ``.clf.gz`` (the excerpts in tests/data) or ``.clf``."""
+    for suffix in (".clf.bz2", ".clf.gz", ".clf"):
+        if (data / f"{log}{suffix}").is_file():
+            return data / f"{log}{suffix}"
+    raise SystemExit(f"{data / log}.clf.bz2: file not found (nor .clf.gz, .clf)")
 METHODS = {  # name -> (method, warm start)
     "odometry": (None, "file"),
     "icp": ("icp-point", "file"),
@@ -44,48 +52,48 @@ METHODS = {  # name -> (method, warm start)
 }
 
 
-def run_method(log: str, name: str, keyframes: str, sets: dict, threads: int) -> dict:
+def run_method(data: Path, log: str, name: str, keyframes: str, sets: dict, threads: int) -> dict:
     import torch
 
     torch.set_num_threads(threads)
     t0 = time.perf_counter()
     if name == "reference":
-        row = _reference(log)
+        row = _reference(data, log)
     else:
-        row = _register(log, name, keyframes, sets, threads)
+        row = _register(data, log, name, keyframes, sets, threads)
     row["wall_s"] = time.perf_counter() - t0
     row["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     return row
 
 
-def _register(log: str, name: str, keyframes: str, sets: dict, threads: int) -> dict:
+def _register(data: Path, log: str, name: str, keyframes: str, sets: dict, threads: int) -> dict:
     from deepmapping.api import evaluate_relations, register
     from deepmapping.config import load_config
     from deepmapping.io.loaders import load_scans
 
-    scans = load_scans(CARMEN / f"{log}.clf.bz2", keyframes=keyframes)
+    scans = load_scans(log_file(data, log), keyframes=keyframes)
     method, warm = METHODS[name]
     if method is None:
         row = evaluate_relations(scans, scans.init_poses) | {"keyframes": scans.num_scans}
-        return row | {"on_reference": _on_reference(log, scans, scans.init_poses)}
+        return row | {"on_reference": _on_reference(data, log, scans, scans.init_poses)}
     overrides = {"method": method, "warm_start.method": warm, "threads": threads}
     if method == "deepmapping":
         overrides |= sets
     result = register(scans, load_config("default", overrides=overrides))
     return result.metrics | {"keyframes": scans.num_scans, "runtime_s": result.runtime_s,
-                             "on_reference": _on_reference(log, scans, result.poses)}
+                             "on_reference": _on_reference(data, log, scans, result.poses)}
 
 
-def _on_reference(log: str, scans, poses) -> dict:
+def _on_reference(data: Path, log: str, scans, poses) -> dict:
     """The errors on the relations the corrected reference covers (both scans in the corrected
     log): the like-for-like comparison with the reference row (intel: 90 of 2984)."""
     from deepmapping.core.relations import Relations, read_relations, score_relations
     from deepmapping.io.carmen import match_scans, read_carmen
 
-    raw = read_carmen(CARMEN / f"{log}.clf.bz2")
-    idx = match_scans(read_carmen(CARMEN / "corrected" / CORRECTED[log]), raw)
+    raw = read_carmen(log_file(data, log))
+    idx = match_scans(read_carmen(data / "corrected" / CORRECTED[log]), raw)
     covered = {raw.stamps[k] for k in idx[idx >= 0]}
-    rel = read_relations(CARMEN / f"{log}.relations")
+    rel = read_relations(data / f"{log}.relations")
     keep = [a in covered and b in covered for a, b in zip(rel.stamp_i, rel.stamp_j)]
     sub = Relations([a for a, k in zip(rel.stamp_i, keep) if k], [b for b, k in zip(rel.stamp_j, keep) if k],
                     rel.motion[np.array(keep)], rel.path)
@@ -93,15 +101,15 @@ def _on_reference(log: str, scans, poses) -> dict:
     return score_relations(sub, seq.stamps, seq.poses_for_all_scans(poses))
 
 
-def _reference(log: str) -> dict:
+def _reference(data: Path, log: str) -> dict:
     from deepmapping.core.relations import read_relations, score_relations
     from deepmapping.io.carmen import match_scans, read_carmen
 
-    raw = read_carmen(CARMEN / f"{log}.clf.bz2")
-    ref = read_carmen(CARMEN / "corrected" / CORRECTED[log])
+    raw = read_carmen(log_file(data, log))
+    ref = read_carmen(data / "corrected" / CORRECTED[log])
     idx = match_scans(ref, raw)
     ok = idx >= 0
-    scores = score_relations(read_relations(CARMEN / f"{log}.relations"), [raw.stamps[k] for k in idx[ok]],
+    scores = score_relations(read_relations(data / f"{log}.relations"), [raw.stamps[k] for k in idx[ok]],
                              ref.poses[ok])
     return {"relations": scores, "keyframes": int(ok.sum())}
 
@@ -156,6 +164,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--set", action="append", default=[], help="override for the DeepMapping runs")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "carmen")
+    ap.add_argument("--data", type=Path, default=CARMEN, help="folder of <log>.clf.bz2, <log>.relations, corrected/")
     args = ap.parse_args(argv)
     args.argv = argv if argv is not None else __import__("sys").argv[1:]
     sets = parse_sets(args.set)
@@ -166,7 +175,7 @@ def main(argv: list[str] | None = None) -> dict:
             if name != "reference" and name not in METHODS:
                 raise SystemExit(f"unknown method {name!r} (known: reference, {', '.join(METHODS)})")
             with ProcessPoolExecutor(1, mp_context=get_context("spawn")) as pool:  # fresh process: own RSS
-                row = pool.submit(run_method, log, name, args.keyframes, sets, args.threads).result()
+                row = pool.submit(run_method, args.data, log, name, args.keyframes, sets, args.threads).result()
             results[log][name] = row
             a = row["relations"]["all"]
             print(f"{log:6s} {name:12s} {a.get('trans_mean_m', float('nan')):8.3f} m "

@@ -75,7 +75,7 @@ def relative_errors(est, ref, unit_scale: float) -> list[dict]:
 def bunny(args, sets) -> dict:
     from deepmapping.io.bunny import bunny_pose_errors, load_bunny, scan_centroids
 
-    scans = load_bunny(SHARED / "bunny", max_points=args.max_points)
+    scans = load_bunny(args.data / "bunny", max_points=args.max_points)
     centroids = scan_centroids(scans.points, scans.valid)
     starts = {"coarse": coarse_start(scans), "identity": np.tile(np.eye(4), (scans.num_scans, 1, 1))}
     report = {"start": {name: bunny_pose_errors(p, scans.gt_poses, scans.names, centroids) for name, p in starts.items()}}
@@ -94,7 +94,7 @@ def bunny(args, sets) -> dict:
 def threedtk(args, sets) -> dict:
     from deepmapping.io.threedtk import load_3dtk, write_frames
 
-    scans = load_3dtk(SHARED / "3dtk", max_points=args.max_points * 5)
+    scans = load_3dtk(args.data / "3dtk", max_points=args.max_points * 5)
     report = {"odometry": relative_errors(scans.init_poses, scans.gt_poses, 100.0)}
     for method, ov in METHODS.items():
         extra = sets if method in ("deepmapping", "direct") else {}
@@ -122,6 +122,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--max-points", type=int, default=2000, help="points per bunny scan (3DTK: 5x)")
     ap.add_argument("--set", action="append", default=[], help="override for DeepMapping/direct, e.g. optim.epochs=100")
     ap.add_argument("--only", choices=["bunny", "3dtk"], default=None)
+    ap.add_argument("--data", type=Path, default=SHARED, help="folder holding bunny/ and 3dtk/ (default ../shared/data)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "real_3d")
     args = ap.parse_args(argv)

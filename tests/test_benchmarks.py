@@ -9,10 +9,7 @@ from pathlib import Path
 import pytest
 
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "speed_2d.py"
-SHARED = SCRIPT.parents[2] / "shared" / "data"  # the real scans beside the checkout (CI has them)
-needs_shared = pytest.mark.skipif(
-    not SHARED.is_dir(),
-    reason="reads the real scans in ../shared/data, beside the checkout (CI has them); a fresh clone has not")
+DATA = SCRIPT.parents[1] / "tests" / "data"  # excerpts of ../shared/data (tests/data/make_excerpts.py)
 
 
 @pytest.fixture(scope="module")
@@ -71,11 +68,10 @@ def test_avd_3d_benchmark_smoke_run(tmp_path):
     assert "| deepmapping |" in (tmp_path / "results.md").read_text()
 
 
-@needs_shared
 def test_real_3d_benchmark_smoke_run(tmp_path):
-    """benchmarks/real_3d.py on the 3DTK scans at toy size writes slam6D .frames per method."""
+    """benchmarks/real_3d.py on the 3DTK excerpt at toy size writes slam6D .frames per method."""
     cmd = [sys.executable, str(SCRIPT.parent / "real_3d.py"), "--only", "3dtk", "--max-points", "60", "--threads", "1",
-           "--set", "optim.epochs=2", "--out", str(tmp_path)]
+           "--set", "optim.epochs=2", "--data", str(DATA), "--out", str(tmp_path)]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     report = json.loads((tmp_path / "results.json").read_text())["3dtk"]
@@ -83,17 +79,17 @@ def test_real_3d_benchmark_smoke_run(tmp_path):
     assert (tmp_path / "3dtk_frames" / "deepmapping" / "scan002.frames").is_file()
 
 
-@needs_shared
 def test_carmen_benchmark_smoke_run(tmp_path):
-    """benchmarks/carmen.py on fr079 at toy density: the relations table, the reference reproduced."""
+    """benchmarks/carmen.py on the fr079 excerpt at toy density: the relations table, the reference
+    reproduced (the excerpt's score, as in test_carmen; the full log's is 0.058 m)."""
     cmd = [sys.executable, str(SCRIPT.parent / "carmen.py"), "--logs", "fr079", "--methods",
            "reference,odometry,dm-odometry", "--keyframes", "every:60", "--threads", "1",
-           "--set", "optim.epochs=2", "--out", str(tmp_path)]
+           "--set", "optim.epochs=2", "--data", str(DATA / "carmen"), "--out", str(tmp_path)]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     rows = json.loads((tmp_path / "results.json").read_text())["fr079"]
     assert set(rows) == {"reference", "odometry", "dm-odometry"}
-    assert abs(rows["reference"]["relations"]["all"]["trans_mean_m"] - 0.058) < 0.002
-    assert rows["odometry"]["relations"]["unmatched"] == 0 and rows["odometry"]["keyframes"] == 83
+    assert abs(rows["reference"]["relations"]["all"]["trans_mean_m"] - 0.0492) < 0.0015
+    assert rows["odometry"]["relations"]["unmatched"] == 0 and rows["odometry"]["keyframes"] == 10
     assert rows["dm-odometry"]["peak_rss_mb"] > 0 and rows["dm-odometry"]["wall_s"] > 0
-    assert "| dm-odometry | 83 |" in (tmp_path / "results.md").read_text()
+    assert "| dm-odometry | 10 |" in (tmp_path / "results.md").read_text()
