@@ -1,7 +1,7 @@
 """Probe the cold-start curriculum's placements (docs/method.md, "Larger motions" and "Cold start
 on depth images"): the measurements that decide its settings, a few minutes each.
 
-    .venv/bin/python benchmarks/cold_placements.py robustness --trajectories 50,51,52,53,54 --stride 8
+    .venv/bin/python benchmarks/cold_placements.py robustness --trajectories 50,51,52,53,54 --stride 8 --why
     .venv/bin/python benchmarks/cold_placements.py robustness --stride 8 \\
         --set curriculum.refine_top=8 --set curriculum.max_turn_deg=60 --set curriculum.hypotheses=64
     .venv/bin/python benchmarks/cold_placements.py avd --trajectories 0,1,2 --set curriculum.select_truncate=0.05
@@ -32,7 +32,36 @@ def _overrides(sets: list[str]) -> dict:
     return out
 
 
-def robustness(trajectories: list[int], stride: int, extra: dict) -> None:
+def explain_placements(gt: np.ndarray, unit: float, log: list) -> None:
+    """Wrap curriculum.place_new_scan: after each placement, append (scan, error px, error deg,
+    loss of the chosen placement, loss of the true one relative to the placed predecessor)."""
+    from deepmapping.core import se2
+    from deepmapping.solver import curriculum as cur
+
+    plain = getattr(cur.place_new_scan, "plain", cur.place_new_scan)
+
+    def place(trainer, j):
+        plain(trainer, j)
+        if j == 0:
+            return
+        model, cfg = trainer.model, trainer.cfg.curriculum
+        prev, chosen = cur.placement(model, j - 1), cur.placement(model, j)
+        truth = se2.compose(prev, se2.relative(gt[j - 1], gt[j]))
+        err = se2.relative(truth, chosen)
+        pts = cur.selection_points(model, trainer.valid, j, cfg.select_points)
+        pp, pv = cur.selection_points(model, trainer.valid, j - 1, cfg.select_points)
+        prev_glob = (cur.transform(cur.candidate_poses(model, prev[None]), pp[None])[0], pv)
+        with torch.no_grad():
+            loss = cur.candidate_losses(model, pts, j, cur.candidate_poses(model, np.stack([chosen, truth])),
+                                        prev_glob, trainer.cfg.loss.chamfer_weight, cfg.select_bce_weight)
+        log.append((j, unit * float(np.hypot(err[0], err[1])), float(np.degrees(abs(err[2]))),
+                    float(loss[0]), float(loss[1])))
+
+    place.plain = plain
+    cur.place_new_scan = place
+
+
+def robustness(trajectories: list[int], stride: int, extra: dict, why: bool = False) -> None:
     from deepmapping.api import evaluate_poses, register
     from deepmapping.config import load_config
     from deepmapping.sim.dataset import paper_trajectory
@@ -42,11 +71,17 @@ def robustness(trajectories: list[int], stride: int, extra: dict) -> None:
         s = paper_trajectory(t)
         s.points, s.valid, s.gt_poses, s.names = s.points[::stride], s.valid[::stride], s.gt_poses[::stride], \
             s.names[::stride]
+        log: list = []
+        if why:
+            explain_placements(s.gt_poses, s.unit_scale, log)
         t0 = time.perf_counter()
         r = register(s, load_config("cold", overrides={"optim.epochs": 1, "threads": 1} | extra))
         placed.append(float(evaluate_poses(s, r.placements)["ate"]))
         print(f"trajectory {t} stride {stride}: placed ATE {placed[-1]:.1f} px ({time.perf_counter() - t0:.0f} s)",
               flush=True)
+        for j, px, deg, chosen, true in [e for e in log if e[1] > 20 or e[2] > 10][:3]:
+            cause = "search (the truth is lower)" if true < chosen else "criterion (the truth is higher)"
+            print(f"  scan {j}: {px:.1f} px / {deg:.1f} deg off, loss {chosen:.3f} vs truth {true:.3f}: {cause}")
     print(f"below 20 px: {sum(a < 20 for a in placed)} of {len(placed)}")
 
 
@@ -73,13 +108,15 @@ def main() -> None:
     ap.add_argument("--trajectories", default=None, help="comma-separated (robustness: 50-54, avd: 0-2)")
     ap.add_argument("--stride", type=int, default=8)
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--why", action="store_true", help="robustness: for the first scans placed > 20 px or "
+                    "10 deg off, the loss of the chosen and of the true placement (search or criterion failure)")
     a = ap.parse_args()
     torch.set_num_threads(1)
     default = "50,51,52,53,54" if a.kind == "robustness" else "0,1,2"
     ts = [int(x) for x in (a.trajectories or default).split(",")]
     np.set_printoptions(precision=3)
     if a.kind == "robustness":
-        robustness(ts, a.stride, _overrides(a.sets))
+        robustness(ts, a.stride, _overrides(a.sets), a.why)
     else:
         avd(ts, _overrides(a.sets))
 

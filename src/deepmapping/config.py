@@ -129,6 +129,19 @@ class CurriculumConfig(_Section):
     refine_top: int = Field(0, ge=0)
     refine_steps: int = Field(20, ge=1)
     refine_lr: float = Field(0.01, gt=0)
+    # > 0: before the rounds, a wide search: this many hypotheses uniform within wide_shift x the
+    # median range of both centres and +- wide_turn_deg, ranked on wide_points points of the new
+    # scan; the wide_refine best of its wide_keep are refined (as refine_top) and replace the
+    # rounds' choice where their loss is lower (larger motions: every 8th scan and beyond).
+    # It runs for the second scan, and for later ones when the median motion between the placed
+    # scans exceeds wide_trigger x the rounds' spread (max_shift, max_turn_deg): slow sequences skip it
+    wide_hypotheses: int = Field(1024, ge=0)  # 0: off
+    wide_trigger: float = Field(0.5, ge=0)
+    wide_shift: float = Field(0.75, ge=0)
+    wide_turn_deg: float = Field(90.0, ge=0, le=180)
+    wide_points: int = Field(16, ge=8)
+    wide_keep: int = Field(16, ge=1)
+    wide_refine: int = Field(8, ge=1)
     log_every: int = Field(8, ge=1)  # log (loss, ATE) every N stages
 
 

@@ -67,6 +67,23 @@ def placement(model, j: int) -> np.ndarray:
         return _se2_of(model.poses(torch.tensor([j], device=model.scans.device))[0].double()).cpu().numpy()
 
 
+def placements(model, n: int) -> np.ndarray:
+    """Where scans 0..n-1 are placed now, as planar poses (n, 3)."""
+    if not model.is_3d:
+        return model.direct_poses[:n].detach().double().cpu().numpy()
+    with torch.no_grad():
+        return _se2_of(model.poses(torch.arange(n, device=model.scans.device)).double()).cpu().numpy()
+
+
+def typical_motion(model, n: int) -> tuple[float, float]:
+    """The median shift and turn (radians) between consecutive placements of scans 0..n-1."""
+    if n < 2:
+        return 0.0, 0.0
+    p = placements(model, n)
+    m = se2.relative(p[:-1], p[1:])
+    return float(np.median(np.hypot(m[:, 0], m[:, 1]))), float(np.median(np.abs(m[:, 2])))
+
+
 def candidate_poses(model, cands) -> torch.Tensor:
     """Planar poses (H, 3) -> what ``transform`` takes: (H, 3) in 2D, (H, 4, 4) in 3D."""
     t = torch.as_tensor(cands, dtype=model.scans.dtype, device=model.scans.device)
@@ -174,11 +191,18 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
     else:
         ch_weight, truncate = trainer.cfg.loss.chamfer_weight, None
 
-    def score(c) -> torch.Tensor:
-        return candidate_losses(model, pts, j, candidate_poses(model, c), prev_glob, ch_weight,
+    def score(c, on=pts) -> torch.Tensor:
+        return candidate_losses(model, on, j, candidate_poses(model, c), prev_glob, ch_weight,
                                 cfg.select_bce_weight, truncate=truncate)
 
     turn = math.radians(cfg.max_turn_deg)
+    seeds = None
+    moved, turned = typical_motion(model, j)
+    if cfg.wide_hypotheses > 0 and (j == 1 or moved > cfg.wide_trigger * shift or turned > cfg.wide_trigger * turn):
+        few = selection_points(model, trainer.valid, j, cfg.wide_points)
+        seeds = wide_search(lambda c: score(c, few), centres[[0, half % h]], cfg.wide_hypotheses,
+                            cfg.wide_shift * median_range, math.radians(cfg.wide_turn_deg), cfg.wide_keep,
+                            np.random.default_rng([trainer.cfg.seed, j, 1]))  # the rounds draw as without it
     best, best_loss = None, math.inf
     seen_c, seen_l = [], []
     for _ in range(cfg.rounds):
@@ -199,7 +223,23 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
     if cfg.refine_top > 0:
         best = refine(score, np.concatenate(seen_c), torch.cat(seen_l), cfg.refine_top, cfg.refine_steps,
                       cfg.refine_lr, model.scans.dtype)
+    if seeds is not None:  # the wide search's seeds, refined apart, replace the rounds' best only if lower
+        far = refine(score, seeds, score(seeds), cfg.wide_refine, cfg.refine_steps, cfg.refine_lr,
+                     model.scans.dtype)
+        both = np.stack([best, far])
+        best = both[int(torch.argmin(score(both)))]
     set_placement(model, range(j, model.scans.shape[0]), best)  # unplaced scans wait there too
+
+
+def wide_search(score: Callable, centres: np.ndarray, h: int, radius: float, turn: float, keep: int,
+                rng: np.random.Generator) -> np.ndarray:
+    """The ``keep`` lowest-loss of ``h`` hypotheses drawn uniformly within ``radius`` of the
+    ``centres`` (a random one each) and turned uniformly within +- ``turn``: seeds for the rounds
+    when the motion since the predecessor is larger than their spread."""
+    c = centres[rng.integers(0, len(centres), h)]
+    r, a = np.sqrt(rng.uniform(0, 1, h)) * radius, rng.uniform(0, 2 * np.pi, h)
+    cands = se2.compose(c, np.stack([r * np.cos(a), r * np.sin(a), rng.uniform(-1, 1, h) * turn], 1))
+    return cands[torch.argsort(score(cands))[:keep].cpu().numpy()]
 
 
 def refine(score: Callable, cands: np.ndarray, losses: torch.Tensor, top: int, steps: int, lr: float,
