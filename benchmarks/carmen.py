@@ -42,6 +42,8 @@ def log_file(data: Path, log: str) -> Path:
         if (data / f"{log}{suffix}").is_file():
             return data / f"{log}{suffix}"
     raise SystemExit(f"{data / log}.clf.bz2: file not found (nor .clf.gz, .clf)")
+
+
 METHODS = {  # name -> (method, warm start)
     "odometry": (None, "file"),
     "icp": ("icp-point", "file"),

@@ -75,13 +75,14 @@ def placements(model, n: int) -> np.ndarray:
         return _se2_of(model.poses(torch.arange(n, device=model.scans.device)).double()).cpu().numpy()
 
 
-def typical_motion(model, n: int) -> tuple[float, float]:
-    """The median shift and turn (radians) between consecutive placements of scans 0..n-1."""
-    if n < 2:
-        return 0.0, 0.0
-    p = placements(model, n)
+def wide_needed(model, j: int, shift: float, turn: float) -> bool:
+    """Whether scan j gets the wide search: the second scan (no motion known yet), or the median
+    shift or turn (radians) between the placements of scans 0..j-1 above ``shift`` / ``turn``."""
+    if j < 2:
+        return j == 1
+    p = placements(model, j)
     m = se2.relative(p[:-1], p[1:])
-    return float(np.median(np.hypot(m[:, 0], m[:, 1]))), float(np.median(np.abs(m[:, 2])))
+    return bool(np.median(np.hypot(m[:, 0], m[:, 1])) > shift or np.median(np.abs(m[:, 2])) > turn)
 
 
 def candidate_poses(model, cands) -> torch.Tensor:
@@ -197,8 +198,7 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
 
     turn = math.radians(cfg.max_turn_deg)
     seeds = None
-    moved, turned = typical_motion(model, j)
-    if cfg.wide_hypotheses > 0 and (j == 1 or moved > cfg.wide_trigger * shift or turned > cfg.wide_trigger * turn):
+    if cfg.wide_hypotheses > 0 and wide_needed(model, j, cfg.wide_trigger * shift, cfg.wide_trigger * turn):
         few = selection_points(model, trainer.valid, j, cfg.wide_points)
         seeds = wide_search(lambda c: score(c, few), centres[[0, half % h]], cfg.wide_hypotheses,
                             cfg.wide_shift * median_range, math.radians(cfg.wide_turn_deg), cfg.wide_keep,
@@ -234,8 +234,8 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
 def wide_search(score: Callable, centres: np.ndarray, h: int, radius: float, turn: float, keep: int,
                 rng: np.random.Generator) -> np.ndarray:
     """The ``keep`` lowest-loss of ``h`` hypotheses drawn uniformly within ``radius`` of the
-    ``centres`` (a random one each) and turned uniformly within +- ``turn``: seeds for the rounds
-    when the motion since the predecessor is larger than their spread."""
+    ``centres`` (a random one each) and turned uniformly within +- ``turn``: candidates from
+    farther than the rounds reach, refined and compared with the rounds' choice by the caller."""
     c = centres[rng.integers(0, len(centres), h)]
     r, a = np.sqrt(rng.uniform(0, 1, h)) * radius, rng.uniform(0, 2 * np.pi, h)
     cands = se2.compose(c, np.stack([r * np.cos(a), r * np.sin(a), rng.uniform(-1, 1, h) * turn], 1))
