@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -20,7 +20,14 @@ WarmStart = Literal["none", "icp-point", "icp-plane", "icp-planar", "multiway", 
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # unknown keys and NaN / inf are errors; numbers that make no sense (negative epochs, lr <= 0,
+    # a negative voxel size, ...) are refused by the bounds of each field
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+PosInt = Annotated[int, Field(ge=1)]
+PosFloat = Annotated[float, Field(gt=0)]
+NonNegFloat = Annotated[float, Field(ge=0)]
 
 
 class LNetConfig(_Section):
@@ -28,25 +35,25 @@ class LNetConfig(_Section):
 
     # "auto": a CNN for organized scans (2D scans, depth images), PointNet for unorganized clouds
     extractor: Literal["auto", "cnn", "pointnet"] = "auto"
-    conv_channels: list[int] = [64, 128, 1024]
-    kernel_size: int = 3
-    dilation: int = 2
-    stride: int = 1  # convolution stride (1 in the paper; >1 makes depth-image L-Nets cheap)
-    point_channels: list[int] = [64, 128, 256, 1024]  # PointNet's shared MLP (supplementary A)
+    conv_channels: list[PosInt] = [64, 128, 1024]
+    kernel_size: int = Field(3, ge=1)
+    dilation: int = Field(2, ge=1)
+    stride: int = Field(1, ge=1)  # convolution stride (1 in the paper; >1 makes depth-image L-Nets cheap)
+    point_channels: list[PosInt] = [64, 128, 256, 1024]  # PointNet's shared MLP (supplementary A)
     # 3D: the L-Net's correction turns a scan about its sensor (as the paper) or about the
     # scan's centroid (better conditioned when the sensor is far from what it sees, e.g. the bunny)
     pivot: Literal["sensor", "centroid"] = "sensor"
-    fc_channels: list[int] = [512, 256]
+    fc_channels: list[PosInt] = [512, 256]
     zero_init_output: bool = False  # start as identity correction when warm-started
     # Standardize the pooled and hidden features with statistics fixed by one pass over all
     # scans at the start. Without it the features of all scans are nearly parallel, and the
     # L-Net learns one shared correction first and per-scan corrections very slowly.
     feature_norm: bool = False
-    feature_std_floor: float = 0.0  # Standardize: std >= this x the layer's mean std (0 = off)
-    lr_factor: float = 1.0  # L-Net learning rate = optim.lr * lr_factor (direct poses use optim.lr)
+    feature_std_floor: float = Field(0.0, ge=0)  # Standardize: std >= this x the layer's mean std (0 = off)
+    lr_factor: float = Field(1.0, ge=0)  # L-Net learning rate = optim.lr * lr_factor (direct poses use optim.lr)
     # Also feed the L-Net its scan's warm-start pose (x, y, cos, sin with this many Fourier
     # frequencies; 0 = the scan only, as in the paper).
-    pose_input_freqs: int = 0
+    pose_input_freqs: int = Field(0, ge=0)
 
 
 class MNetConfig(_Section):
@@ -55,39 +62,39 @@ class MNetConfig(_Section):
     # "resmlp": residual blocks RB(n) of two FC(n) layers, one per entry of ``hidden``
     # (supplementary A: RB(64)-RB(64)-RB(64)-RB(128)-RB(128))
     kind: Literal["mlp", "resmlp", "fourier", "grid"] = "mlp"
-    hidden: list[int] = [64, 512, 512, 256, 128]
-    fourier_features: int = 0  # number of log-spaced frequencies per axis (kind="fourier")
-    fourier_max_freq: float = 32.0  # highest frequency: period 2/f on the map normalized to [-1, 1]
-    grid_levels: int = 6  # kind="grid": multi-resolution feature grids
-    grid_features: int = 4
-    grid_base: int = 16  # coarsest resolution (cells across the map)
-    grid_finest: int = 512
-    lr_factor: float = 1.0  # M-Net learning rate = optim.lr * lr_factor
+    hidden: list[PosInt] = [64, 512, 512, 256, 128]
+    fourier_features: int = Field(0, ge=0)  # number of log-spaced frequencies per axis (kind="fourier")
+    fourier_max_freq: float = Field(32.0, gt=0)  # highest frequency: period 2/f on the map normalized to [-1, 1]
+    grid_levels: int = Field(6, ge=1)  # kind="grid": multi-resolution feature grids
+    grid_features: int = Field(4, ge=1)
+    grid_base: int = Field(16, ge=1)  # coarsest resolution (cells across the map)
+    grid_finest: int = Field(512, ge=1)
+    lr_factor: float = Field(1.0, ge=0)  # M-Net learning rate = optim.lr * lr_factor
     # kind="fourier": open the frequency bands coarse to fine over this fraction of the epochs
     # (BARF-style; 0 = all bands from the start)
-    coarse_to_fine: float = 0.0
+    coarse_to_fine: float = Field(0.0, ge=0, le=1)
 
 
 class LossConfig(_Section):
-    free_samples: int = 19  # free-space samples per beam (paper: 19)
+    free_samples: int = Field(19, ge=0)  # free-space samples per beam (paper: 19)
     free_sampling: Literal["uniform", "stratified"] = "uniform"
-    near_hit_samples: int = 0  # extra free-space samples on each beam just before its hit
-    near_hit_distance: float = 0.02  # ... within this distance of the hit (normalized map units)
-    beams_per_scan: int | None = None  # None = every beam each step; else a random subset
-    chamfer_weight: float = 10.0  # lambda of eq. 6 (paper: 10 for 2D)
-    chamfer_window: int = 1  # N(i) = {i-w, ..., i+w} \ {i}
+    near_hit_samples: int = Field(0, ge=0)  # extra free-space samples on each beam just before its hit
+    near_hit_distance: float = Field(0.02, ge=0)  # ... within this distance of the hit (normalized map units)
+    beams_per_scan: PosInt | None = None  # None = every beam each step; else a random subset
+    chamfer_weight: float = Field(10.0, ge=0)  # lambda of eq. 6 (paper: 10 for 2D)
+    chamfer_window: int = Field(1, ge=0)  # N(i) = {i-w, ..., i+w} \ {i}
 
 
 class OptimConfig(_Section):
-    lr: float = 1e-3
-    batch_size: int = 128
-    epochs: int = 3000
-    max_time_s: float | None = None  # stop after this much wall time (None = no limit)
-    mnet_warmup_epochs: int = 0  # first epochs train the M-Net only (poses held at the warm start)
-    lr_final_factor: float = 1.0  # cosine decay to lr * factor (1.0 = constant lr, as the paper)
-    eval_every: int = 50  # evaluate ATE (when gt known) and log every N epochs
-    early_stop_tol: float | None = None  # stop when poses move less than this (units) over a log interval
-    checkpoint_every_s: float = 30.0
+    lr: float = Field(1e-3, gt=0)
+    batch_size: int = Field(128, ge=1)
+    epochs: int = Field(3000, ge=0)
+    max_time_s: NonNegFloat | None = None  # stop after this much wall time (None = no limit)
+    mnet_warmup_epochs: int = Field(0, ge=0)  # first epochs train the M-Net only (poses held at the warm start)
+    lr_final_factor: float = Field(1.0, ge=0)  # cosine decay to lr * factor (1.0 = constant lr, as the paper)
+    eval_every: int = Field(50, ge=1)  # evaluate ATE (when gt known) and log every N epochs
+    early_stop_tol: NonNegFloat | None = None  # stop when poses move less than this (units) over a log interval
+    checkpoint_every_s: float = Field(30.0, ge=0)
 
 
 class CurriculumConfig(_Section):
@@ -146,31 +153,31 @@ class CurriculumConfig(_Section):
 
 
 class ICPConfig(_Section):
-    max_iterations: int = 50
-    max_correspondence_distance: float | None = None  # None = adaptive to the scan scale
+    max_iterations: int = Field(50, ge=0)
+    max_correspondence_distance: PosFloat | None = None  # None = adaptive to the scan scale
     # 2D incremental ICP: a pair is also registered from the identity and by a bounded untrimmed
     # ICP, and takes that result when its overlap beats the constant-velocity one by this (None: off)
     recover_margin: float | None = 0.05
-    voxel_size: float | None = None  # 3D: downsampling voxel before ICP / multiway (None = adaptive)
+    voxel_size: PosFloat | None = None  # 3D: downsampling voxel before ICP / multiway (None = adaptive)
     multiway_edges: str = "all"  # 3D multiway registration: "all" pairs or "window:N"
     # icp-planar (3-DoF AVD-like poses): yaw offsets tried per pair, the best fitness wins
     yaw_hypotheses_deg: list[float] = [0.0, 30.0, -30.0]
     # loop-closure (2D, long sequences; lengths in the scans' units): earlier keyframes within
     # loop_radius of a new one and at least loop_min_gap keyframes back are matched; a match
     # is kept when loop_min_overlap of its points lie within loop_inlier_distance
-    loop_radius: float = 4.0
-    loop_min_gap: int = 30
-    loop_max_candidates: int = 3
-    loop_min_overlap: float = 0.7
-    loop_inlier_distance: float = 0.1
-    loop_sequential_submap: int = 5  # each keyframe is matched to its last N keyframes merged
+    loop_radius: float = Field(4.0, gt=0)
+    loop_min_gap: int = Field(30, ge=1)
+    loop_max_candidates: int = Field(3, ge=0)
+    loop_min_overlap: float = Field(0.7, ge=0, le=1)
+    loop_inlier_distance: float = Field(0.1, gt=0)
+    loop_sequential_submap: int = Field(5, ge=1)  # each keyframe is matched to its last N keyframes merged
     loop_sequential_method: Literal["point", "plane"] = "plane"
     # the odometry motion as a prior of each sequential point-to-line match: (metres, degrees)
     # standard deviations; [] = none (corridors then let matches slide)
-    loop_odometry_sigma: list[float] = [0.1, 5.0]
+    loop_odometry_sigma: list[PosFloat] = [0.1, 5.0]
     # a loop closure is kept only where the matched walls fix both translation directions:
     # smaller / larger eigenvalue of the inliers' mean n n^T (0 = a straight corridor)
-    loop_min_constraint: float = 0.2
+    loop_min_constraint: float = Field(0.2, ge=0, le=1)
 
 
 class WarmStartConfig(_Section):
@@ -185,16 +192,16 @@ class WarmStartConfig(_Section):
 class EvalConfig(_Section):
     # ATE below this (in reporting units: px for 2D, mm for AVD-like 3D) = success.
     # None = 20 px for 2D (supplementary B), 450 mm for 3D (supplementary C).
-    success_threshold: float | None = None
-    voxel_size: float | None = None  # 3D occupancy export (points' units); None = 1/64 of the map's extent
+    success_threshold: PosFloat | None = None
+    voxel_size: PosFloat | None = None  # 3D occupancy export (points' units); None = 1/64 of the map's extent
 
 
 class Config(_Section):
     profile: str = "default"
     method: Method = "deepmapping"
-    seed: int = 0
+    seed: int = Field(0, ge=0, le=2**64 - 1)  # numpy and torch generators take 0 ... 2^64 - 1
     device: Literal["auto", "cpu", "cuda"] = "auto"
-    threads: int | None = None  # torch intra-op threads (None = torch default)
+    threads: PosInt | None = None  # torch intra-op threads (None = torch default)
     lnet: LNetConfig = Field(default_factory=LNetConfig)
     mnet: MNetConfig = Field(default_factory=MNetConfig)
     loss: LossConfig = Field(default_factory=LossConfig)
@@ -215,10 +222,10 @@ class Config(_Section):
             *parents, leaf = key.split(".")
             for p in parents:
                 if p not in node or not isinstance(node[p], dict):
-                    raise ConfigError(f"unknown setting '{key}'")
+                    raise ConfigError(f"unknown setting {key!r}")
                 node = node[p]
             if leaf not in node:
-                raise ConfigError(f"unknown setting '{key}'")
+                raise ConfigError(f"unknown setting {key!r}")
             node[leaf] = value
         return validate_config(data)
 
@@ -231,7 +238,7 @@ def validate_config(data: dict) -> Config:
     except ValidationError as exc:
         err = exc.errors()[0]
         loc = ".".join(str(x) for x in err["loc"])
-        raise ConfigError(f"invalid setting '{loc}': {err['msg']}") from None
+        raise ConfigError(f"invalid setting {loc!r}: {err['msg']}") from None
 
 
 PROFILES: dict[str, dict] = {
@@ -282,9 +289,15 @@ def load_config(profile: str = "default", path: str | Path | None = None, overri
     base = PROFILES[PROFILE_BASE[profile]] if profile in PROFILE_BASE else {}
     data = _deep_merge(_deep_merge(Config().model_dump(), base), PROFILES[profile])
     data["profile"] = profile
-    if path is not None:
-        data = _deep_merge(data, _read_config_file(Path(path)))
-    cfg = validate_config(data)
+    if path is None:
+        cfg = validate_config(data)
+    else:
+        path = Path(path)
+        try:
+            cfg = validate_config(_deep_merge(data, _read_config_file(path)))
+        except ConfigError as exc:
+            msg = str(exc)
+            raise ConfigError(msg if msg.startswith(f"{path}: ") else f"{path}: {msg}") from None
     return cfg.with_overrides(overrides) if overrides else cfg
 
 
@@ -292,10 +305,17 @@ def _read_config_file(path: Path) -> dict:
     import yaml
 
     try:
-        loaded = yaml.safe_load(path.read_text())
+        loaded = yaml.safe_load(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise ConfigError(f"{path}: config file not found") from None
-    except (OSError, yaml.YAMLError) as exc:
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: cannot read config (not a UTF-8 text file)") from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f", line {mark.line + 1}" if mark is not None else ""
+        raise ConfigError(f"{path}: cannot read config ({type(exc).__name__}{where})") from None
+    # ValueError: a value YAML cannot build (a date 2020-13-45, !!int x); RecursionError: nested too deep
+    except (OSError, ValueError, RecursionError) as exc:
         raise ConfigError(f"{path}: cannot read config ({type(exc).__name__})") from None
     if not isinstance(loaded, dict):
         raise ConfigError(f"{path}: config must be a mapping of sections")

@@ -15,8 +15,11 @@ def parse_sets(items: list[str] | None) -> dict:
     for item in items or []:
         key, sep, value = item.partition("=")
         if not sep or not key:
-            raise ConfigError(f"--set expects KEY=VALUE, got '{item}'")
-        out[key.strip()] = yaml.safe_load(value)
+            raise ConfigError(f"--set expects KEY=VALUE, got {item!r}")
+        try:
+            out[key.strip()] = yaml.safe_load(value)
+        except (yaml.YAMLError, ValueError, RecursionError):  # e.g. --set mnet.hidden=[64
+            raise ConfigError(f"--set {key.strip()}: cannot read the value {value[:40]!r} (YAML)") from None
     return out
 
 

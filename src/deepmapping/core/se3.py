@@ -57,7 +57,10 @@ def from_xyz_quat(xyz_quat) -> np.ndarray:
     q = np.asarray(xyz_quat, dtype=np.float64)
     if q.shape[-1] != 7:
         raise ValueError(f"expected (..., 7) [x y z qx qy qz qw], got {q.shape}")
-    rot = Rotation.from_quat(q[..., 3:].reshape(-1, 4)).as_matrix().reshape(q.shape[:-1] + (3, 3))
+    quat = q[..., 3:].reshape(-1, 4)
+    scale = np.abs(quat).max(axis=1, keepdims=True)
+    quat = quat / np.where(scale > 0, scale, 1.0)  # to ~1 first: |q|^2 of huge components (1e200) overflows
+    rot = Rotation.from_quat(quat).as_matrix().reshape(q.shape[:-1] + (3, 3))
     return from_rt(rot, q[..., :3])
 
 

@@ -20,6 +20,7 @@ import bz2
 import gzip
 import io
 import os
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -120,6 +121,8 @@ def _robotlaser(tok: list[str]):
     if len(tok) <= m_at:
         raise _Bad(f"ROBOTLASER1 with {n} readings is cut short")
     m = int(tok[m_at])
+    if m < 0:
+        raise _Bad(f"ROBOTLASER1 with {m} remissions")
     tail = m_at + 1 + m
     if len(tok) < tail + 12:
         raise _Bad(f"ROBOTLASER1 with {n} readings and {m} remissions needs {tail + 14} fields, found {len(tok)}")
@@ -148,13 +151,15 @@ def read_carmen(path: str | os.PathLike, message: str | None = None) -> CarmenLo
                     ts = float(stamp)
                 except (_Bad, ValueError, IndexError) as e:
                     raise InputError(f"{path}:{lineno}: malformed {tok[0]} line ({e})") from None
-                if not 0 < geom[0] <= 10000 or not 0 < geom[2] <= 2 * np.pi + 1e-6 or not geom[3] > 0:
+                if (not 0 < geom[0] <= 10000 or not np.isfinite(geom[1]) or not 0 < geom[2] <= 2 * np.pi + 1e-6
+                        or not geom[3] > 0):
                     raise InputError(f"{path}:{lineno}: implausible {tok[0]} beam layout "
-                                     f"({geom[0]} beams, fov {geom[2]:g} rad, max range {geom[3]:g})")
+                                     f"({geom[0]} beams, start {geom[1]:g} rad, fov {geom[2]:g} rad, "
+                                     f"max range {geom[3]:g})")
                 if not (np.isfinite(pose).all() and np.isfinite(odom).all() and np.isfinite(ts)):
                     raise InputError(f"{path}:{lineno}: NaN or inf in the pose or timestamp")
                 rows.append((ranges, geom, pose, odom, ts, stamp, lineno))
-    except (OSError, EOFError, UnicodeDecodeError) as e:
+    except (OSError, EOFError, UnicodeDecodeError, zlib.error) as e:  # zlib.error: corrupt .gz data
         raise InputError(f"{path}: cannot read log ({e})") from None
     if not rows:
         raise InputError(f"{path}: no {message or 'FLASER or ROBOTLASER1'} laser message found")

@@ -46,8 +46,10 @@ def read_velodyne_bin(path: str | os.PathLike) -> np.ndarray:
 
 def read_calib_tr(path: str | os.PathLike) -> np.ndarray | None:
     """The 4x4 LiDAR-to-camera-0 transform of a KITTI ``calib.txt`` (None if it has no Tr line)."""
+    from deepmapping.io.atomic import read_user_file
+
     path = Path(path)
-    for lineno, line in enumerate(path.read_text(errors="replace").splitlines(), start=1):
+    for lineno, line in enumerate(read_user_file(path).decode("utf-8", errors="replace").splitlines(), start=1):
         key, _, rest = line.partition(":")
         if key.strip() == "Tr":
             try:
@@ -56,7 +58,12 @@ def read_calib_tr(path: str | os.PathLike) -> np.ndarray | None:
                 vals = np.zeros(0)
             if vals.shape != (12,):
                 raise InputError(f"{path}:{lineno}: Tr needs 12 numbers")
-            return np.vstack([vals.reshape(3, 4), [0.0, 0.0, 0.0, 1.0]])
+            if not np.isfinite(vals).all():
+                raise InputError(f"{path}:{lineno}: Tr contains NaN or inf")
+            from deepmapping.io.poses3d import check_rotations
+
+            tr = np.vstack([vals.reshape(3, 4), [0.0, 0.0, 0.0, 1.0]])
+            return check_rotations(path, tr[None], [lineno])[0]  # a rigid transform (it is inverted)
     return None
 
 

@@ -8,6 +8,7 @@ little-endian, as written by PCL and Open3D.
 
 from __future__ import annotations
 
+import itertools
 import os
 from pathlib import Path
 from typing import IO
@@ -169,24 +170,28 @@ def read_pcd(path: str | os.PathLike) -> np.ndarray:
         raise InputError(f"{path}: PCD has no x/y fields (fields: {' '.join(fields)})")
     wanted = {axis: lower.index(axis) for axis in ("x", "y", "z") if axis in lower}
 
-    out = np.zeros((n, 3), dtype=np.float32)
     if data_kind == "binary_compressed":
         raise InputError(f"{path}: PCD 'DATA binary_compressed' is not supported; save as binary or ascii")
     if data_kind == "binary":
+        for i, (t, s) in enumerate(zip(types, sizes)):
+            if (t, s) not in _PCD_TYPES:
+                raise InputError(f"{path}: unsupported PCD field type {t}{s} for field {fields[i]!r}")
+        point_size = sum(s * c for s, c in zip(sizes, counts))
+        need = n * point_size
+        avail = len(raw) - offset
+        if avail < need:  # checked before anything is allocated: POINTS or COUNT may be huge
+            raise InputError(
+                f"{path}: truncated PCD data ({avail} bytes for {n} points of {point_size} bytes)"
+            )
+        if n == 0:
+            return np.zeros((0, 3), dtype=np.float32)
         dt_fields = []
         for i, (t, s, c) in enumerate(zip(types, sizes, counts)):
-            base = _PCD_TYPES.get((t, s))
-            if base is None:
-                raise InputError(f"{path}: unsupported PCD field type {t}{s} for field {fields[i]!r}")
+            base = _PCD_TYPES[(t, s)]
             dt_fields.append((f"f{i}", base, (c,)) if c > 1 else (f"f{i}", base))
         dtype = np.dtype(dt_fields)  # packed, no alignment padding (as in PCD files)
-        need = n * dtype.itemsize
-        avail = len(raw) - offset
-        if avail < need:
-            raise InputError(
-                f"{path}: truncated PCD data ({avail} bytes for {n} points of {dtype.itemsize} bytes)"
-            )
         rec = np.frombuffer(raw, dtype=dtype, count=n, offset=offset)
+        out = np.zeros((n, 3), dtype=np.float32)
         for j, axis in enumerate(("x", "y", "z")):
             if axis in wanted:
                 col = rec[f"f{wanted[axis]}"]
@@ -194,7 +199,7 @@ def read_pcd(path: str | os.PathLike) -> np.ndarray:
         return out
     if data_kind == "ascii":
         ncols = sum(counts)
-        starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(int)
+        starts = [0, *itertools.accumulate(counts)][:-1]  # Python ints: COUNT may be huge
         try:
             text = raw[offset:].decode("ascii")
         except UnicodeDecodeError:
@@ -208,11 +213,12 @@ def read_pcd(path: str | os.PathLike) -> np.ndarray:
                 raise InputError(
                     f"{path}: PCD ascii point {i} has {len(r)} values, expected {ncols}"
                 )
-        cols = [int(starts[wanted[a]]) for a in ("x", "y", "z") if a in wanted]
+        cols = [starts[wanted[a]] for a in ("x", "y", "z") if a in wanted]
         try:
             vals = np.array([[float(r[c]) for c in cols] for r in rows], dtype=np.float64).reshape(n, len(cols))
         except ValueError:
             raise InputError(f"{path}: PCD ascii data contains a non-numeric value") from None
+        out = np.zeros((n, 3), dtype=np.float32)
         out[:, : len(cols)] = vals  # x, y always present; z is last when present
         return out
     raise InputError(f"{path}: unknown PCD DATA type {data_kind!r} (expected ascii or binary)")

@@ -97,6 +97,8 @@ def _parse_header(path: Path, raw: bytes) -> tuple[str, list[_Element], int]:
             if tok[0] == "format":
                 fmt = tok[1]
             elif tok[0] == "element":
+                if int(tok[2]) < 0:
+                    raise ValueError
                 elements.append(_Element(tok[1], int(tok[2])))
             elif tok[0] == "property":
                 if not elements:
@@ -119,11 +121,16 @@ def _binary_element(path: Path, raw: bytes, offset: int, el: _Element, endian: s
     """Parse one binary element; return (structured array of its scalar props or None, new offset)."""
     if not el.has_list:
         dtype = np.dtype([(f"p{i}", endian + t) for i, (_, t) in enumerate(el.props)])
+        if dtype.itemsize == 0:  # an element without properties takes no bytes
+            return None, offset
         need = el.count * dtype.itemsize
         if len(raw) - offset < need:
             raise InputError(f"{path}: truncated PLY data in element {el.name!r}")
         return np.frombuffer(raw, dtype=dtype, count=el.count, offset=offset), offset + need
-    # elements with list properties: walk record by record (faces; rarely vertices)
+    # elements with list properties: walk record by record (faces; rarely vertices); a record
+    # takes at least one byte, so a count larger than the bytes left is a truncated file
+    if el.count > len(raw) - offset:
+        raise InputError(f"{path}: truncated PLY data in element {el.name!r}")
     scal = [(f"p{i}", endian + t) for i, (_, t) in enumerate(el.props) if not isinstance(t, tuple)]
     out = np.zeros(el.count, dtype=np.dtype(scal)) if scal else None
     try:
@@ -132,6 +139,8 @@ def _binary_element(path: Path, raw: bytes, offset: int, el: _Element, endian: s
                 if isinstance(t, tuple):
                     ct, it = np.dtype(endian + t[0]), np.dtype(endian + t[1])
                     m = int(np.frombuffer(raw, ct, 1, offset)[0])
+                    if m < 0:
+                        raise InputError(f"{path}: negative list length in PLY element {el.name!r} record {k}")
                     offset += ct.itemsize + m * it.itemsize
                 else:
                     dt = np.dtype(endian + t)
@@ -165,7 +174,6 @@ def read_ply(path: str | os.PathLike) -> np.ndarray:
     if any(isinstance(t, tuple) for name, t in vert.props if name in ("x", "y", "z")):
         raise InputError(f"{path}: PLY vertex x/y/z must be scalar properties")
     axes = [names.index(a) for a in ("x", "y", "z") if a in names]
-    out = np.zeros((vert.count, 3), dtype=np.float32)
 
     if fmt == "ascii":
         try:
@@ -177,6 +185,7 @@ def read_ply(path: str | os.PathLike) -> np.ndarray:
         rows = lines[start : start + vert.count]
         if len(rows) < vert.count:
             raise InputError(f"{path}: truncated PLY data ({len(rows)} vertex lines for {vert.count})")
+        out = np.zeros((vert.count, 3), dtype=np.float32)
         # token index of each scalar prop (vertex list props shift later tokens per row)
         try:
             for k, ln in enumerate(rows):
@@ -184,7 +193,10 @@ def read_ply(path: str | os.PathLike) -> np.ndarray:
                 pos, where = 0, {}
                 for i, (_, t) in enumerate(vert.props):
                     if isinstance(t, tuple):
-                        pos += 1 + int(tok[pos])
+                        m = int(tok[pos])
+                        if m < 0:
+                            raise ValueError
+                        pos += 1 + m
                     else:
                         where[i] = pos
                         pos += 1
@@ -201,6 +213,7 @@ def read_ply(path: str | os.PathLike) -> np.ndarray:
         _, offset = _binary_element(path, raw, offset, el, endian)
     rec, _ = _binary_element(path, raw, offset, vert, endian)
     assert rec is not None
+    out = np.zeros((vert.count, 3), dtype=np.float32)
     for j, i in enumerate(axes):
         out[:, j] = rec[f"p{i}"]
     return out

@@ -57,7 +57,8 @@ def _numbers(path: Path, rows: list[tuple[int, list[str]]], ncols: int, what: st
     return out
 
 
-def _check_rotations(path: Path, poses: np.ndarray, lines: list[int] | None = None) -> np.ndarray:
+def check_rotations(path: Path, poses: np.ndarray, lines: list[int] | None = None) -> np.ndarray:
+    """``poses`` (K, 4, 4), or InputError naming ``path`` and the line (or pose) whose rotation block is not one."""
     rot = poses[:, :3, :3]
     det = np.linalg.det(rot)
     orth = np.abs(np.swapaxes(rot, 1, 2) @ rot - np.eye(3)).max(axis=(1, 2))
@@ -76,7 +77,7 @@ def read_kitti_poses(path: str | os.PathLike) -> np.ndarray:
     vals = _numbers(path, rows, 12, "KITTI 3x4 row-major")
     poses = se3.identity((len(rows),))
     poses[:, :3, :] = vals.reshape(-1, 3, 4)
-    return _check_rotations(path, poses, [r[0] for r in rows])
+    return check_rotations(path, poses, [r[0] for r in rows])
 
 
 def read_tum_poses(path: str | os.PathLike) -> np.ndarray:
@@ -109,7 +110,7 @@ def read_poses_npy_3d(path: str | os.PathLike) -> np.ndarray:
     poses[:, :3, :] = arr[:, :3, :]
     if arr.shape[1] == 4 and np.abs(arr[:, 3, :] - [0, 0, 0, 1]).max() > ROT_TOL:
         raise InputError(f"{path}: last row of every pose must be [0 0 0 1]")
-    return _check_rotations(path, poses)
+    return check_rotations(path, poses)
 
 
 def _sniff_columns(path: Path) -> int:

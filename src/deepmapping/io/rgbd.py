@@ -50,7 +50,7 @@ def read_json(path: Path, required: bool = True) -> dict:
         return {}
     try:
         obj = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, ValueError) as e:
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as e:  # RecursionError: nested too deep
         raise InputError(f"{path}: invalid JSON ({type(e).__name__}: {e})".splitlines()[0]) from None
     if not isinstance(obj, dict):
         raise InputError(f"{path}: expected a JSON object")
@@ -65,7 +65,7 @@ def _intrinsics(path: Path) -> dict:
     try:
         out = {k: float(intr[k]) for k in _INTR_KEYS}
         out["depth_scale"] = float(intr.get("depth_scale", 1000.0))
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an integer too large for a float
         raise InputError(f"{path}: intrinsics must be numbers") from None
     if not all(np.isfinite(v) for v in out.values()) or min(out["fx"], out["fy"], out["depth_scale"]) <= 0:
         raise InputError(f"{path}: fx, fy and depth_scale must be positive finite numbers")

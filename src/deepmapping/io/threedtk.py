@@ -123,7 +123,7 @@ def read_frames(path: str | os.PathLike, return_codes: bool = False):
     """(M, 4, 4) poses of a ``.frames`` file in the loaded frame (metres, y down); with
     ``return_codes`` also the (M,) algorithm codes (-1 where a line has none)."""
     path = Path(path)
-    mats, codes = [], []
+    mats, codes, lines = [], [], []
     for lineno, line in enumerate(read_user_text(path).splitlines(), start=1):
         tok = line.split()
         if not tok:
@@ -137,11 +137,16 @@ def read_frames(path: str | os.PathLike, return_codes: bool = False):
         m = np.array(v[:16]).reshape(4, 4).T
         if not np.isfinite(m).all() or np.abs(m[3] - [0, 0, 0, 1]).max() > 1e-6:
             raise InputError(f"{path}: line {lineno}: not a finite homogeneous 4x4 matrix")
+        if len(v) == 17 and not (v[16].is_integer() and abs(v[16]) < 2**31):
+            raise InputError(f"{path}: line {lineno}: the algorithm code must be an integer, got {tok[16][:20]!r}")
         mats.append(m)
         codes.append(int(v[16]) if len(v) == 17 else -1)
+        lines.append(lineno)
     if not mats:
         raise InputError(f"{path}: no frame")
-    poses = _to_ours(np.stack(mats))
+    from deepmapping.io.poses3d import check_rotations
+
+    poses = _to_ours(check_rotations(path, np.stack(mats), lines))
     return (poses, np.array(codes)) if return_codes else poses
 
 
