@@ -16,11 +16,20 @@ def progress_bar(enabled: bool = True):
     columns = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn()]
     with Progress(*columns, console=console, disable=not enabled, transient=False) as bar:
-        yield Callbacks(bar)
+        cb = Callbacks(bar)
+        try:
+            yield cb
+        finally:
+            cb.stop()
 
 
 class Callbacks:
-    """Callbacks for register(): ICP progress, per-epoch loss, periodic ATE."""
+    """Callbacks for register(): ICP progress, per-epoch loss, periodic ATE.
+
+    One bar per stage (warm start, cold-start placing, training). A stage ends when the next
+    one begins: its bar is then shown complete and its clock stops (else the warm start's clock
+    would keep counting through the training).
+    """
 
     def __init__(self, bar: Progress):
         self.bar = bar
@@ -29,8 +38,18 @@ class Callbacks:
 
     def _task(self, name: str, total: int) -> int:
         if name not in self.tasks:
+            self.stop(complete=True)  # a new stage: the earlier ones are over
             self.tasks[name] = self.bar.add_task(name, total=total, info="")
         return self.tasks[name]
+
+    def stop(self, complete: bool = False) -> None:
+        """Stop the clock of every running stage; ``complete`` also fills its bar (2D ICP reports
+        scans 1 ... K-1 of K, so its last report is one short)."""
+        for task in self.bar.tasks:
+            if task.stop_time is None:
+                if complete and task.total is not None:
+                    self.bar.update(task.id, completed=task.total)
+                self.bar.stop_task(task.id)
 
     def icp(self, i: int, total: int) -> None:
         self.bar.update(self._task("warm start / ICP", total), completed=i)
