@@ -34,7 +34,8 @@ def _overrides(sets: list[str]) -> dict:
 
 def explain_placements(gt: np.ndarray, unit: float, log: list) -> None:
     """Wrap curriculum.place_new_scan: after each placement, append (scan, error px, error deg,
-    loss of the chosen placement, loss of the true one relative to the placed predecessor)."""
+    loss of the chosen placement, loss of the true one relative to the placed predecessor, then
+    eq. 4 alone and the Chamfer distance alone, each for the chosen and the true placement)."""
     from deepmapping.core import se2
     from deepmapping.solver import curriculum as cur
 
@@ -51,11 +52,14 @@ def explain_placements(gt: np.ndarray, unit: float, log: list) -> None:
         pts = cur.selection_points(model, trainer.valid, j, cfg.select_points)
         pp, pv = cur.selection_points(model, trainer.valid, j - 1, cfg.select_points)
         prev_glob = (cur.transform(cur.candidate_poses(model, prev[None]), pp[None])[0], pv)
+        both = cur.candidate_poses(model, np.stack([chosen, truth]))
         with torch.no_grad():
-            loss = cur.candidate_losses(model, pts, j, cur.candidate_poses(model, np.stack([chosen, truth])),
-                                        prev_glob, trainer.cfg.loss.chamfer_weight, cfg.select_bce_weight)
+            loss = cur.candidate_losses(model, pts, j, both, prev_glob, trainer.cfg.loss.chamfer_weight,
+                                        cfg.select_bce_weight)
+            eq4 = cur.candidate_losses(model, pts, j, both, prev_glob, 0.0)  # eq. 4 alone, weight 1
+            ch = cur.candidate_losses(model, pts, j, both, prev_glob, 1.0, 0.0)  # Chamfer alone, weight 1
         log.append((j, unit * float(np.hypot(err[0], err[1])), float(np.degrees(abs(err[2]))),
-                    float(loss[0]), float(loss[1])))
+                    float(loss[0]), float(loss[1]), float(eq4[0]), float(eq4[1]), float(ch[0]), float(ch[1])))
 
     place.plain = plain
     cur.place_new_scan = place
@@ -79,9 +83,10 @@ def robustness(trajectories: list[int], stride: int, extra: dict, why: bool = Fa
         placed.append(float(evaluate_poses(s, r.placements)["ate"]))
         print(f"trajectory {t} stride {stride}: placed ATE {placed[-1]:.1f} px ({time.perf_counter() - t0:.0f} s)",
               flush=True)
-        for j, px, deg, chosen, true in [e for e in log if e[1] > 20 or e[2] > 10][:3]:
+        for j, px, deg, chosen, true, b0, b1, c0, c1 in [e for e in log if e[1] > 20 or e[2] > 10][:3]:
             cause = "search (the truth is lower)" if true < chosen else "criterion (the truth is higher)"
-            print(f"  scan {j}: {px:.1f} px / {deg:.1f} deg off, loss {chosen:.3f} vs truth {true:.3f}: {cause}")
+            print(f"  scan {j}: {px:.1f} px / {deg:.1f} deg off, loss {chosen:.3f} vs truth {true:.3f}: {cause}; "
+                  f"eq. 4 {b0:.3f} vs {b1:.3f}, Chamfer {c0:.4f} vs {c1:.4f}")
     print(f"below 20 px: {sum(a < 20 for a in placed)} of {len(placed)}")
 
 

@@ -121,8 +121,11 @@ class CurriculumConfig(_Section):
     max_turn_deg: float = Field(30.0, ge=0, le=180)  # random turns are uniform in +- this
     max_shift: float = Field(0.25, ge=0)  # random shifts within this x the scan's median range
     rounds: int = Field(3, ge=1)  # rounds of hypotheses, each around the best with half the spread
-    # hypotheses are ranked by select_bce_weight x eq. 4 + loss.chamfer_weight x Chamfer
-    select_bce_weight: float = Field(1.0, ge=0)
+    # hypotheses are ranked by select_bce_weight x eq. 4 + loss.chamfer_weight x Chamfer. 0.1, not
+    # 1: under an M-Net that has seen only the placed scans, eq. 4 charges a new scan's points in
+    # unseen space and so prefers it back inside the known map (a corridor: no motion); the
+    # Chamfer term prefers the truth there (docs/method.md, "Ranking: less weight on eq. 4")
+    select_bce_weight: float = Field(0.1, ge=0)
     # hypotheses are ranked on at most this many points of each scan (dense depth images: a
     # fixed random subset of the valid ones; 2D scans of <= 512 beams: all)
     select_points: int = Field(512, ge=16)

@@ -1,7 +1,7 @@
 """Cold start by curriculum: scans enter the map one chunk at a time (§3.4, the SLAM setting).
 
 No initial poses and no classical registration. Each new scan is placed by the paper's own
-loss: the lowest (eq. 4 + lambda x Chamfer) of random hypotheses near its predecessor, then
+loss: the lowest (0.1 x eq. 4 + lambda x Chamfer) of random hypotheses near its predecessor, then
 refined by gradient steps of that loss together with the M-Net. When every scan is placed, the placements become the warm start
 (§3.5) of ordinary training: T_i = T_place,i ∘ f_theta(S_i). See docs/method.md ("Cold start").
 """
