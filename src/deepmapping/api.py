@@ -25,6 +25,8 @@ class Result:
     config: Config
     init_poses: np.ndarray | None = None
     metrics: dict | None = None
+    # per-log lists (iteration, epoch, time_s, loss, bce, chamfer, ate) and "rollbacks": one dict
+    # per NaN/inf step that training rolled back from (epoch, step, what, lr_scale after it)
     history: dict = field(default_factory=dict)
     occupancy: Callable[[np.ndarray], np.ndarray] | None = None  # M-Net: (M, D) -> p(occupied)
     # trained L-Net (DeepMapping only): (points (M, N, D), valid (M, N), init=None) -> poses of new scans
@@ -225,7 +227,7 @@ def _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_place=N
     trainer.run(checkpoint, on_log, on_epoch, on_place)
     poses = frame.from_norm(model.all_poses().cpu().numpy().astype(np.float64))
     result = _finish(scans, cfg, poses, t0, init=init)
-    result.history = trainer.state.history
+    result.history = dict(trainer.state.history, rollbacks=trainer.state.rollbacks)
     if trainer.use_curriculum:
         result.placements = frame.from_norm(model.init_poses.cpu().numpy().astype(np.float64))
     result.occupancy = _occupancy_fn(model, frame, device)

@@ -1,6 +1,16 @@
 """Errors the CLI turns into one-line messages (no traceback, exit code != 0)."""
 
 
+class Interrupted(Exception):
+    """Ctrl-C during training: a checkpoint was written to `path` (not an error: --resume continues).
+
+    Here, not in solver.trainer, so that the CLI catches it without importing torch."""
+
+    def __init__(self, path):
+        super().__init__(f"interrupted; checkpoint saved to {path}")
+        self.path = path
+
+
 class DeepMappingError(Exception):
     """Base class of every error a user can fix (bad input, bad options)."""
 
@@ -16,3 +26,19 @@ class InputError(DeepMappingError):
 
 class ConfigError(DeepMappingError):
     """Invalid settings or option combination."""
+
+
+class OutputError(DeepMappingError, OSError):
+    """A result cannot be written (disk full, read-only folder, no permission).
+
+    The message names the file: ``runs/x/poses.npy: cannot write (No space left on device)``.
+    Also an ``OSError``, so code that catches OSError around a write still catches it.
+    """
+
+
+class FolderBusy(DeepMappingError):
+    """Another deepmapping process holds the lock of the output folder (see ``io.lock``)."""
+
+
+class TrainingError(DeepMappingError):
+    """Training cannot go on: the loss stayed NaN/inf after every allowed rollback."""

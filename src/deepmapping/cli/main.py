@@ -124,6 +124,8 @@ def register(
                                               keyframes=keyframes, non_keyframes=non_keyframes)
     if result.metrics:
         print_metrics(console, {result.method: result.metrics})
+    if result.history.get("rollbacks"):
+        typer.echo(register_cmd.rollback_note(result.history["rollbacks"], out))
     typer.echo(f"results in {out}")
 
 

@@ -53,24 +53,34 @@ def run_register(data: Path, out: Path, cfg, fmt, gt, resume: bool, plots: bool 
                        non_keyframes=non_keyframes)
     cfg = cfg(scans.is_3d) if callable(cfg) else cfg
     from deepmapping.api import register, resolve_device
-    from deepmapping.solver.trainer import Interrupted
+    from deepmapping.io.atomic import make_folder
+    from deepmapping.io.lock import folder_lock
+    from deepmapping.errors import Interrupted
     from deepmapping.tools.run_dir import write_config, write_json, write_run
 
     if cfg.method in ("deepmapping", "direct"):
         resolve_device(cfg.device)
     info = {"data": str(data.resolve()), "format": fmt, "gt": str(Path(gt).resolve()) if gt else None,
             "keyframes": keyframes, "non_keyframes": non_keyframes}
-    out.mkdir(parents=True, exist_ok=True)
-    write_config(out, cfg)
-    write_json(out / "run.json", {"method": cfg.method, "status": "running", **info})
-    with progress_bar(not quiet) as cb:
-        try:
-            result = register(scans, cfg, checkpoint=out / "checkpoint.pt", resume=resume,
-                              on_log=cb.log, on_epoch=cb.epoch, on_icp_progress=cb.icp,
-                              on_place=cb.place)
-        except Interrupted:
-            console.print(f"[yellow]interrupted:[/] checkpoint saved; continue with "
-                          f"`deepmapping register {data} --out {out} --resume`")
-            raise SystemExit(130) from None
-    write_run(out, scans, result, info, plots=plots)
+    with folder_lock(make_folder(out)):  # a second command on this folder refuses (FolderBusy)
+        write_config(out, cfg)
+        write_json(out / "run.json", {"method": cfg.method, "status": "running", **info})
+        with progress_bar(not quiet) as cb:
+            try:
+                result = register(scans, cfg, checkpoint=out / "checkpoint.pt", resume=resume,
+                                  on_log=cb.log, on_epoch=cb.epoch, on_icp_progress=cb.icp,
+                                  on_place=cb.place)
+            except Interrupted:
+                console.print(f"[yellow]interrupted:[/] checkpoint saved; continue with "
+                              f"`deepmapping register {data} --out {out} --resume`")
+                raise SystemExit(130) from None
+        write_run(out, scans, result, info, plots=plots)
     return scans, result
+
+
+def rollback_note(rollbacks: list[dict], out: Path) -> str:
+    """The final message's line about NaN/inf steps that training rolled back from."""
+    first = rollbacks[0]
+    return (f"note: the {first['what']} at epoch {first['epoch']} (step {first['step']}); training went back "
+            f"to its last good state with lower learning rates ({len(rollbacks)} rollback(s), now "
+            f"{rollbacks[-1]['lr_scale']:g} x the set ones); see {out / 'run.json'}")

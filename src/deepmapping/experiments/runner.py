@@ -10,7 +10,8 @@ from pathlib import Path
 from deepmapping.errors import ConfigError
 from deepmapping.experiments import experiment_module
 from deepmapping.experiments.sweep import load_finished, run_sweep
-from deepmapping.io.atomic import atomic_write
+from deepmapping.io.atomic import atomic_write, make_folder
+from deepmapping.io.lock import folder_lock
 
 
 def run_experiment(name: str, out: str | Path, *, quick: bool = False, workers: int | None = None,
@@ -27,19 +28,19 @@ def run_experiment(name: str, out: str | Path, *, quick: bool = False, workers: 
     chosen = [j for j in jobs if only is None or fnmatch.fnmatchcase(j.key, only)]
     if not chosen:
         raise ConfigError(f"--only {only!r} matches none of the {len(jobs)} runs of experiment {name}")
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    _, errors = run_sweep(chosen, out, workers=workers, threads=threads, cluster=cluster, retries=retries,
-                          progress=progress)
-    results = load_finished(out, jobs)
-    wall = time.perf_counter() - t0
-    settings = {"experiment": name, "quick": quick, "jobs": len(jobs), "only": only, "workers": workers,
-                "threads": threads, "cluster": cluster, "sweep_wall_s": wall, "failed": sorted(errors)}
-    atomic_write(out / "experiment.json", lambda f: f.write(json.dumps(settings, indent=1).encode()))
-    report = module.report(out, results, quick)
-    if errors:
-        lines = "\n".join(f"- `{k}`: {msg} (runs/{k}.failed.json)" for k, msg in sorted(errors.items()))
-        with open(report, "a") as f:
-            f.write(f"\n## Failed runs ({len(errors)} of {len(jobs)})\n\n{lines}\n")
+    out = make_folder(out)
+    with folder_lock(out):  # a second command on this folder refuses (FolderBusy)
+        t0 = time.perf_counter()
+        _, errors = run_sweep(chosen, out, workers=workers, threads=threads, cluster=cluster, retries=retries,
+                              progress=progress)
+        results = load_finished(out, jobs)
+        wall = time.perf_counter() - t0
+        settings = {"experiment": name, "quick": quick, "jobs": len(jobs), "only": only, "workers": workers,
+                    "threads": threads, "cluster": cluster, "sweep_wall_s": wall, "failed": sorted(errors)}
+        atomic_write(out / "experiment.json", lambda f: f.write(json.dumps(settings, indent=1).encode()))
+        report = module.report(out, results, quick)
+        if errors:
+            lines = "\n".join(f"- `{k}`: {msg} (runs/{k}.failed.json)" for k, msg in sorted(errors.items()))
+            text = Path(report).read_text() + f"\n## Failed runs ({len(errors)} of {len(jobs)})\n\n{lines}\n"
+            atomic_write(report, lambda f: f.write(text.encode()))
     return {"report": report, "results": results, "errors": errors, "wall_s": wall}

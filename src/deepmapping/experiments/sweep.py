@@ -4,6 +4,11 @@ Every finished run's result is written atomically to ``<out>/runs/<key>.json`` a
 arrives; a restarted sweep loads those and runs only the rest. A run that raises is retried
 ``retries`` times, then recorded in ``<out>/runs/<key>.failed.json`` (with its traceback) and
 reported; the other runs go on. Failed runs are tried again when the sweep is restarted.
+
+Local runs go to worker processes of our own (``_Pool``), not a ProcessPoolExecutor: a worker
+that dies (kill -9, the out-of-memory killer) fails only the run it had, as "worker died
+(signal 9)", and is replaced; an executor would break and fail every run in flight. The sweep
+holds the lock of ``out`` (``io.lock``): a second sweep on the same folder refuses at once.
 """
 
 from __future__ import annotations
@@ -11,13 +16,15 @@ from __future__ import annotations
 import json
 import os
 import traceback
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from collections import deque
 from multiprocessing import get_context
+from multiprocessing.connection import wait
 from pathlib import Path
 from typing import Callable
 
 from deepmapping.experiments.base import Job, call_job
-from deepmapping.io.atomic import atomic_write
+from deepmapping.io.atomic import atomic_write, make_folder
+from deepmapping.io.lock import folder_lock
 
 Progress = Callable[[int, int, str], None]  # (done, total, key of the run just finished)
 
@@ -44,8 +51,13 @@ def run_sweep(jobs: list[Job], out: str | Path, *, workers: int | None = None, t
     keys = [j.key for j in jobs]
     if len(set(keys)) != len(keys):
         raise ValueError("job keys must be unique")
-    out = Path(out)
-    (out / "runs").mkdir(parents=True, exist_ok=True)
+    out = make_folder(out)
+    with folder_lock(out):
+        return _sweep(jobs, out, workers, threads, cluster, retries, progress)
+
+
+def _sweep(jobs, out: Path, workers, threads, cluster, retries, progress) -> tuple[dict, dict]:
+    make_folder(out / "runs")
     results = load_finished(out, jobs)
     todo = [j for j in jobs if j.key not in results]
     errors: dict[str, str] = {}
@@ -99,22 +111,107 @@ def _run_local(todo, record, *, workers, threads, cluster, retries):
                     break
             record(job, value, error)
         return
-    tries = {j.key: 0 for j in todo}
-    with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
-        pending = {pool.submit(_guarded, j.func, j.kwargs, threads): j for j in todo}
-        while pending:
-            finished, _ = wait(pending, return_when=FIRST_COMPLETED)
-            for fut in finished:
-                job = pending.pop(fut)
-                try:
-                    value, error = fut.result()
-                except Exception:  # the worker process died (e.g. killed for memory)
-                    value, error = None, traceback.format_exc()
-                if error is not None and tries[job.key] < retries:
-                    tries[job.key] += 1
-                    pending[pool.submit(_guarded, job.func, job.kwargs, threads)] = job
-                    continue
-                record(job, value, error)
+    _Pool(workers, threads).run(todo, record, retries)
+
+
+class _Worker:
+    """A spawned process that runs the jobs sent to it, one at a time (imports stay loaded)."""
+
+    def __init__(self, ctx, threads: int):
+        self.conn, child = ctx.Pipe()
+        self.proc = ctx.Process(target=_serve, args=(child, threads), name="deepmapping-sweep-worker")
+        self.proc.start()
+        child.close()  # the worker's end lives in the worker only: its death is EOF here
+        self.job: Job | None = None
+
+    def death(self) -> str:
+        """The error of the run this worker had when it died."""
+        self.proc.join()
+        code = self.proc.exitcode
+        how = f"signal {-code}" if code is not None and code < 0 else f"exit code {code}"
+        return f"RuntimeError: worker died ({how}) while running {self.job.key}\n"
+
+    def stop(self, now: bool = False) -> None:
+        try:
+            if not now:
+                self.conn.send(None)
+                self.proc.join(timeout=10)
+        except OSError:
+            pass
+        if self.proc.is_alive():
+            self.proc.terminate()
+            self.proc.join()
+        self.conn.close()
+
+
+def _serve(conn, threads: int) -> None:
+    """A worker's loop: (func, kwargs) in, (value, traceback) out, until None or the pipe closes."""
+    while True:
+        try:
+            task = conn.recv()
+        except EOFError:
+            return
+        if task is None:
+            return
+        reply = _guarded(*task, threads)
+        try:
+            conn.send(reply)
+        except Exception:  # the result cannot be pickled: reported as that run's error
+            conn.send((None, traceback.format_exc()))
+
+
+class _Pool:
+    """``workers`` processes; each job goes to an idle one; a dead worker is replaced."""
+
+    def __init__(self, workers: int, threads: int):
+        self.size, self.threads, self.ctx = workers, threads, get_context("spawn")
+        self.idle: list[_Worker] = []
+        self.busy: list[_Worker] = []
+
+    def run(self, todo: list[Job], record, retries: int) -> None:
+        queue, tries = deque(todo), {j.key: 0 for j in todo}
+        try:
+            while queue or self.busy:
+                while queue and len(self.busy) < self.size:
+                    self._start(queue.popleft())
+                for job, value, error in self._finished():
+                    if error is not None and tries[job.key] < retries:
+                        tries[job.key] += 1
+                        queue.append(job)
+                    else:
+                        record(job, value, error)
+        finally:
+            for w in self.busy:
+                w.stop(now=True)
+            for w in self.idle:
+                w.stop()
+
+    def _start(self, job: Job) -> None:
+        while True:
+            w = self.idle.pop() if self.idle else _Worker(self.ctx, self.threads)
+            try:
+                w.conn.send((job.func, job.kwargs))
+                break
+            except OSError:  # died while idle: take another
+                w.stop(now=True)
+        w.job = job
+        self.busy.append(w)
+
+    def _finished(self) -> list[tuple[Job, dict | None, str | None]]:
+        """Wait for one or more busy workers to answer or die: (job, value, error) each."""
+        ready = wait([w.conn for w in self.busy])
+        done = []
+        for w in [w for w in self.busy if w.conn in ready]:
+            self.busy.remove(w)
+            try:
+                value, error = w.conn.recv()
+                self.idle.append(w)
+            except (EOFError, OSError):  # the process died (kill -9, out of memory, a crash in C code)
+                value, error = None, w.death()
+                w.stop(now=True)
+            done.append((w.job, value, error))
+            w.job = None
+        return done
 
 
 def _run_dask(todo, record, *, workers, threads, cluster, retries):

@@ -23,11 +23,16 @@ def atomic_write(path: str | os.PathLike, writer: Callable[[IO[bytes]], None]) -
     """Write a file atomically: ``writer(f)`` fills a temp file in the same folder, then os.replace.
 
     A reader never sees a half-written file; on error the temp file is removed and the
-    previous content of ``path`` (if any) is left untouched.
+    previous content of ``path`` (if any) is left untouched. A failed write (disk full,
+    read-only folder, no permission) raises ``OutputError`` naming ``path``: the CLI prints
+    it as one line.
     """
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+    except OSError as e:
+        raise cannot_write(path, e) from None
     try:
         with os.fdopen(fd, "wb") as f:
             writer(f)
@@ -35,12 +40,37 @@ def atomic_write(path: str | os.PathLike, writer: Callable[[IO[bytes]], None]) -
             os.fsync(f.fileno())
         os.chmod(tmp, FILE_MODE)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         try:
             os.unlink(tmp)
         except OSError:
             pass
+        if isinstance(e, OSError):
+            raise cannot_write(path, e) from None
         raise
+
+
+def cannot_write(path, e: OSError) -> OSError:
+    """``OutputError("<path>: cannot write (<reason>)")`` for an OSError raised while writing ``path``."""
+    from deepmapping.errors import OutputError
+
+    if isinstance(e, OutputError):
+        return e
+    return OutputError(f"{path}: cannot write ({e.strerror or e})")
+
+
+def make_folder(path) -> Path:
+    """``mkdir -p path``; OutputError naming it when it cannot be created (read-only, a file there)."""
+    from deepmapping.errors import OutputError
+
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise OutputError(f"{path}: exists and is not a folder") from None
+    except OSError as e:
+        raise OutputError(f"{path}: cannot create the folder ({e.strerror or e})") from None
+    return path
 
 
 def read_user_file(path) -> bytes:

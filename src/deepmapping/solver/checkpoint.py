@@ -1,36 +1,58 @@
-"""Checkpoints: everything needed to continue an interrupted run with --resume."""
+"""Checkpoints: everything needed to continue an interrupted run with --resume.
+
+A checkpoint is taken only where the state is consistent: after a whole epoch (or a whole
+curriculum stage) and its log. Resuming from it repeats exactly what the uninterrupted run
+would have done next (same seed and threads: bit-identical poses), whether the run was stopped
+by Ctrl-C or killed (kill -9, power loss). The same in-memory copy is what training rolls back
+to when a step goes NaN/inf (``Trainer.guarded``).
+"""
 
 from __future__ import annotations
 
-import os
+import copy
 from pathlib import Path
 
 import torch
 
+from deepmapping.io.atomic import atomic_write
+
 HISTORY_KEYS = ("iteration", "epoch", "time_s", "loss", "bce", "chamfer", "ate")
 
 
-def save(path, trainer) -> None:
-    """Write atomically (temp file + rename) so an interrupted save never leaves a broken file."""
-    path = Path(path)
-    st = trainer.state
-    data = {
-        "model": trainer.model.state_dict(),
-        "direct": trainer.model.direct_poses is not None,
-        "optimizer": trainer.opt.state_dict(),
+def capture(trainer) -> dict:
+    """The trainer's state as a checkpoint dict, copied (training goes on changing the originals).
+
+    The model's constant buffers (the scans) are shared, not copied: they never change.
+    """
+    st, model = trainer.state, trainer.model
+    constant = getattr(model, "constant_buffers", ())
+    return {
+        "model": {k: v if k in constant else v.detach().clone() for k, v in model.state_dict().items()},
+        "direct": model.direct_poses is not None,
+        "optimizer": copy.deepcopy(trainer.opt.state_dict()),
         "generator": trainer.gen.get_state(),
         "epoch": st.epoch,
         "step": st.step,
         "elapsed_s": st.elapsed_s,
         "placed": st.placed,
         "curriculum_steps": st.curriculum_steps,
-        "history": st.history,
+        "history": copy.deepcopy(st.history),
+        "lr_scale": st.lr_scale,
+        "rollbacks": copy.deepcopy(st.rollbacks),
+        "early_stop_ref": None if st.early_stop_ref is None else st.early_stop_ref.copy(),
         "config": trainer.cfg.model_dump(),
         **trainer.extra,
     }
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(data, tmp)
-    os.replace(tmp, path)
+
+
+def write(path, data: dict) -> None:
+    """Write atomically (temp file + rename) so an interrupted save never leaves a broken file;
+    a full disk is an ``OutputError`` naming ``path`` and the previous checkpoint stays."""
+    atomic_write(Path(path), lambda f: torch.save(data, f))
+
+
+def save(path, trainer) -> None:
+    write(path, capture(trainer))
 
 
 def load(path) -> dict:
@@ -38,13 +60,20 @@ def load(path) -> dict:
 
 
 def restore(trainer, data: dict) -> None:
+    """Set the trainer to ``data`` (a checkpoint or ``capture``), which stays unchanged (no aliasing:
+    a snapshot can be restored again)."""
     model = trainer.model
     if data["direct"] and model.direct_poses is None:
         model.make_direct()
         trainer.opt = torch.optim.Adam(model.param_groups(), lr=trainer.cfg.optim.lr)
     model.load_state_dict(data["model"])
-    trainer.opt.load_state_dict(data["optimizer"])
+    # the optimizer adopts the given state tensors as they are: give it copies
+    trainer.opt.load_state_dict(copy.deepcopy(data["optimizer"]))
     trainer.gen.set_state(data["generator"])
     st = trainer.state
-    st.epoch, st.step, st.elapsed_s, st.history = data["epoch"], data["step"], data["elapsed_s"], data["history"]
+    st.epoch, st.step, st.elapsed_s = data["epoch"], data["step"], data["elapsed_s"]
+    st.history = copy.deepcopy(data["history"])
     st.placed, st.curriculum_steps = data.get("placed", 0), data.get("curriculum_steps", 0)
+    st.lr_scale, st.rollbacks = data.get("lr_scale", 1.0), copy.deepcopy(data.get("rollbacks", []))
+    ref = data.get("early_stop_ref")
+    st.early_stop_ref = None if ref is None else ref.copy()

@@ -274,23 +274,17 @@ def stage_batch(n: int, cfg, rng: np.random.Generator) -> np.ndarray:
 def run(trainer: Trainer, checkpoint_path=None, on_log: Callable | None = None,
         on_place: Callable[[int, int], None] | None = None) -> None:
     """Place every scan (from ``trainer.state.placed`` on, so that a resumed run continues),
-    then hand the placements over to ordinary training."""
+    then hand the placements over to ordinary training. Each stage is one ``trainer.guarded``
+    body: a NaN/inf step sends it back to the stage's start with a lower learning rate."""
     model, st, cfg = trainer.model, trainer.state, trainer.cfg.curriculum
     k = model.scans.shape[0]
     if model.direct_poses is None:  # placements: free poses while the L-Net is held at zero output
         model.make_direct()
         trainer.reset_optimizer()
-    n, stage = st.placed, 0
+        trainer.boundary()
+    n, stage = st.placed, st.placed // cfg.chunk  # a resumed run logs at the same stages
     while n < k:
-        new = range(n, min(n + cfg.chunk, k))
-        for j in new:
-            place_new_scan(trainer, j)
-        n = new[-1] + 1
-        rng = np.random.default_rng([trainer.cfg.seed, n])
-        sums = np.zeros(3)
-        for _ in range(cfg.steps if n > 1 else 0):
-            sums += trainer.step(stage_batch(n, cfg, rng), lr=cfg.lr)
-        set_placement(model, range(n, k), placement(model, n - 1))  # unplaced scans wait at the newest
+        n, sums = trainer.guarded(lambda start=n: _stage(trainer, start))
         st.curriculum_steps = st.step
         stage += 1
         if on_place:
@@ -299,10 +293,27 @@ def run(trainer: Trainer, checkpoint_path=None, on_log: Callable | None = None,
             trainer.log_now(*(sums / max(cfg.steps, 1)), on_log)
         if n < k:  # a checkpoint says "all placed" only once the placements are handed over
             st.placed = n
-            trainer.maybe_checkpoint(checkpoint_path)
+            trainer.boundary(checkpoint_path)
     hand_over(trainer)
     st.placed = k
-    trainer.maybe_checkpoint(checkpoint_path, force=True)
+    trainer.boundary(checkpoint_path, force=True)
+
+
+def _stage(trainer: Trainer, start: int) -> tuple[int, np.ndarray]:
+    """Place scans ``start``.. (one chunk), then ``steps`` steps on the placed ones; returns
+    (number placed, summed (loss, bce, chamfer) of the steps)."""
+    model, cfg = trainer.model, trainer.cfg.curriculum
+    k = model.scans.shape[0]
+    new = range(start, min(start + cfg.chunk, k))
+    for j in new:
+        place_new_scan(trainer, j)
+    n = new[-1] + 1
+    rng = np.random.default_rng([trainer.cfg.seed, n])
+    sums = np.zeros(3)
+    for _ in range(cfg.steps if n > 1 else 0):
+        sums += trainer.step(stage_batch(n, cfg, rng), lr=cfg.lr)
+    set_placement(model, range(n, k), placement(model, n - 1))  # unplaced scans wait at the newest
+    return n, sums
 
 
 def hand_over(trainer: Trainer) -> None:

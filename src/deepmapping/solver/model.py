@@ -30,6 +30,8 @@ class DeepMappingModel(nn.Module):
     2D poses are (K, 3); 3D poses (K, 4, 4) with a planar (3-DoF) or 6-DoF correction.
     """
 
+    constant_buffers = ("scans", "lnet_scans", "pivot")  # never change: snapshots share them
+
     def __init__(self, cfg: Config, scans: torch.Tensor, init_poses: torch.Tensor,
                  valid: torch.Tensor | None = None, grid_shape: tuple[int, int] | None = None, pose_dof: int = 3):
         super().__init__()

@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from deepmapping.config import Config
+from deepmapping.errors import Interrupted, TrainingError
 from deepmapping.solver import checkpoint as ckpt
 from deepmapping.solver import curriculum
 from deepmapping.solver.geometry import transform
@@ -23,12 +24,13 @@ def _positions(poses: np.ndarray) -> np.ndarray:
     return poses[:, :3, 3] if poses.ndim == 3 else poses[:, :2]
 
 
-class Interrupted(Exception):
-    """Ctrl-C during training: a checkpoint was written to `path`."""
+ROLLBACK_LR_FACTOR = 0.5  # each rollback after a NaN/inf step multiplies every learning rate by this
+MAX_ROLLBACKS = 4  # per run; one more non-finite step is a TrainingError
 
-    def __init__(self, path):
-        super().__init__(f"interrupted; checkpoint saved to {path}")
-        self.path = path
+
+class NonFinite(Exception):
+    """A step's loss is NaN/inf, or a NaN/inf gradient made the weights so: the work since the
+    last boundary is undone (``Trainer.guarded``)."""
 
 
 @dataclass
@@ -39,6 +41,9 @@ class TrainState:
     placed: int = 0  # cold-start curriculum: scans placed so far
     curriculum_steps: int = 0  # steps taken by the curriculum (before the learning-rate schedule)
     history: dict = field(default_factory=lambda: {k: [] for k in ckpt.HISTORY_KEYS})
+    lr_scale: float = 1.0  # x every learning rate: ROLLBACK_LR_FACTOR per rollback
+    rollbacks: list = field(default_factory=list)  # one dict per rollback (epoch, step, what, lr_scale)
+    early_stop_ref: np.ndarray | None = None  # poses at the last log, for optim.early_stop_tol
 
 
 def epoch_batches(num_scans: int, batch: int, rng: np.random.Generator) -> list[np.ndarray]:
@@ -68,6 +73,7 @@ class Trainer:
         self.extra: dict = {}  # saved with every checkpoint (e.g. the warm start and the frame)
         self._t_start = time.perf_counter()
         self._last_ckpt = time.perf_counter()
+        self._good: dict | None = None  # the last consistent state (ckpt.capture), see boundary()
 
     def reset_optimizer(self) -> None:
         """A fresh Adam over what produces the poses (L-Net or free poses) and the M-Net."""
@@ -104,7 +110,7 @@ class Trainer:
 
     def step(self, idx: np.ndarray, lr: float | None = None) -> tuple[float, float, float]:
         """One optimizer step on the scans ``idx``; ``lr``: a constant rate instead of the schedule."""
-        lr = self.lr_at(self.state.step) if lr is None else lr
+        lr = (self.lr_at(self.state.step) if lr is None else lr) * self.state.lr_scale
         warmup = self.state.epoch < self.cfg.optim.mnet_warmup_epochs and not self.use_curriculum_now()
         for g in self.opt.param_groups:
             g["lr"] = 0.0 if (warmup and g["name"] == "poses") else lr * g["lr_factor"]
@@ -112,8 +118,18 @@ class Trainer:
         self.opt.zero_grad(set_to_none=True)
         total.backward()
         self.opt.step()
+        loss = total.item()
+        if not math.isfinite(loss):  # the step is undone by the rollback (guarded) that follows
+            raise NonFinite(f"loss is {loss}")
         self.state.step += 1
-        return total.item(), bce.item(), ch.item()
+        return loss, bce.item(), ch.item()
+
+    def _check_weights(self) -> None:
+        """NonFinite when a weight or pose is NaN/inf: a finite loss with a NaN/inf gradient
+        leaves them so (the next step's loss then shows it; this catches the last step's)."""
+        sums = [p.detach().sum() for g in self.opt.param_groups for p in g["params"]]
+        if sums and not bool(torch.isfinite(torch.stack(sums).sum())):
+            raise NonFinite("weights became NaN/inf (a NaN/inf gradient)")
 
     def use_curriculum_now(self) -> bool:
         return self.use_curriculum and self.state.placed < self.valid.shape[0]
@@ -122,55 +138,98 @@ class Trainer:
         self.state.elapsed_s = time.perf_counter() - self._t_start
         return self._log(self.state.step, loss, bce, ch, self.state.elapsed_s, on_log)
 
-    def maybe_checkpoint(self, path, force: bool = False) -> None:
+    # -- consistent states: checkpoints, rollbacks -----------------------------------------
+    def boundary(self, path=None, force: bool = False) -> None:
+        """Here the state is consistent (an epoch or a curriculum stage and its log are complete):
+        keep a copy in memory, the point a NaN/inf step rolls back to and Ctrl-C saves, and
+        write it to the checkpoint ``path`` when one is due (every optim.checkpoint_every_s)."""
+        self._good = ckpt.capture(self)
         if path and (force or time.perf_counter() - self._last_ckpt > self.cfg.optim.checkpoint_every_s):
-            self.state.elapsed_s = time.perf_counter() - self._t_start
-            ckpt.save(path, self)
-            self._last_ckpt = time.perf_counter()
+            self._write_good(path)
+
+    def _write_good(self, path) -> None:
+        self.state.elapsed_s = time.perf_counter() - self._t_start
+        ckpt.write(path, dict(self._good, elapsed_s=self.state.elapsed_s))
+        self._last_ckpt = time.perf_counter()
+
+    def guarded(self, body: Callable):
+        """``body()`` (an epoch, a curriculum stage) from the last boundary; when one of its steps
+        goes NaN/inf: back to that boundary, every learning rate x ROLLBACK_LR_FACTOR, and again
+        (at most MAX_ROLLBACKS times per run, then TrainingError)."""
+        while True:
+            try:
+                out = body()
+                self._check_weights()
+                return out
+            except NonFinite as exc:
+                self._roll_back(str(exc))
+
+    def _roll_back(self, what: str) -> None:
+        st = self.state
+        if len(st.rollbacks) >= MAX_ROLLBACKS:
+            raise TrainingError(
+                f"training diverged: the {what} at epoch {st.epoch} (step {st.step}) after {MAX_ROLLBACKS} "
+                f"rollbacks that each multiplied the learning rates by {ROLLBACK_LR_FACTOR} (now "
+                f"{st.lr_scale:g} x the set ones); lower optim.lr (and curriculum.lr) and run again")
+        event = {"epoch": st.epoch, "step": st.step, "what": what, "lr_scale": st.lr_scale * ROLLBACK_LR_FACTOR}
+        rollbacks = st.rollbacks + [event]
+        ckpt.restore(self, self._good)
+        st.rollbacks, st.lr_scale = rollbacks, event["lr_scale"]
 
     # -- the loop -----------------------------------------------------------------------
     def run(self, checkpoint_path=None, on_log: Callable[[dict], None] | None = None,
             on_epoch: Callable[[int, int, float], None] | None = None,
             on_place: Callable[[int, int], None] | None = None) -> TrainState:
         cfg, st = self.cfg.optim, self.state
-        k = self.valid.shape[0]
         self._t_start = time.perf_counter() - st.elapsed_s
         self._last_ckpt = time.perf_counter()
         if st.epoch == 0 and not st.history["iteration"]:
             self._log(0, float("nan"), float("nan"), float("nan"), 0.0, on_log)
+        self.boundary()
         try:
             if self.use_curriculum_now():
                 curriculum.run(self, checkpoint_path, on_log, on_place)
-            prev_poses = self.model.all_poses().cpu().numpy() if cfg.early_stop_tol else None
+            if cfg.early_stop_tol and st.early_stop_ref is None:  # training's start (a resumed run has it)
+                st.early_stop_ref = self.model.all_poses().cpu().numpy()
+                self.boundary()
             while st.epoch < cfg.epochs:
-                self._anneal_mnet()
-                rng = np.random.default_rng([self.cfg.seed, st.epoch])
-                sums = np.zeros(3)
-                batches = epoch_batches(k, cfg.batch_size, rng)
-                for idx in batches:
-                    sums += self.step(idx)
+                mean = self.guarded(self._epoch)
                 st.epoch += 1
+                last = self._after_epoch(mean, on_log)
+                self.boundary(checkpoint_path, force=last)
                 if on_epoch:
-                    on_epoch(st.epoch, cfg.epochs, sums[0] / len(batches))
-                st.elapsed_s = time.perf_counter() - self._t_start
-                out_of_time = cfg.max_time_s is not None and st.elapsed_s >= cfg.max_time_s
-                last = st.epoch >= cfg.epochs or out_of_time
-                if st.epoch % cfg.eval_every == 0 or last:
-                    mean = sums / len(batches)
-                    poses = self._log(st.step, *mean, st.elapsed_s, on_log)
-                    if prev_poses is not None:
-                        moved = np.abs(_positions(poses) - _positions(prev_poses)).max()
-                        prev_poses = poses
-                        last = last or moved < cfg.early_stop_tol
-                self.maybe_checkpoint(checkpoint_path, force=last)
+                    on_epoch(st.epoch, cfg.epochs, mean[0])
                 if last:
                     break
-        except KeyboardInterrupt:
-            st.elapsed_s = time.perf_counter() - self._t_start
+        except KeyboardInterrupt:  # save the last consistent state: resuming repeats what followed it
             if checkpoint_path:
-                ckpt.save(checkpoint_path, self)
+                self._write_good(checkpoint_path)
             raise Interrupted(checkpoint_path) from None
         return st
+
+    def _epoch(self) -> np.ndarray:
+        """One pass over the scans; the mean (loss, bce, chamfer) of its steps (the caller counts it)."""
+        self._anneal_mnet()
+        rng = np.random.default_rng([self.cfg.seed, self.state.epoch])
+        sums = np.zeros(3)
+        batches = epoch_batches(self.valid.shape[0], self.cfg.optim.batch_size, rng)
+        for idx in batches:
+            sums += self.step(idx)
+        return sums / len(batches)
+
+    def _after_epoch(self, mean: np.ndarray, on_log) -> bool:
+        """Log when due; whether training ends here (last epoch, time budget, early stop)."""
+        cfg, st = self.cfg.optim, self.state
+        st.elapsed_s = time.perf_counter() - self._t_start
+        out_of_time = cfg.max_time_s is not None and st.elapsed_s >= cfg.max_time_s
+        last = st.epoch >= cfg.epochs or out_of_time
+        if st.epoch % cfg.eval_every == 0 or last:
+            poses = self._log(st.step, *mean, st.elapsed_s, on_log)
+            if st.early_stop_ref is not None:
+                moved = np.abs(_positions(poses) - _positions(st.early_stop_ref)).max()
+                st.early_stop_ref = poses
+                last = last or moved < cfg.early_stop_tol
+        return last
 
     def _anneal_mnet(self) -> None:
         frac = self.cfg.mnet.coarse_to_fine

@@ -79,20 +79,18 @@ def _new_figure(figsize):
 
 
 def _save(fig, path) -> None:
-    """Render ``fig`` with Agg to ``path`` atomically."""
+    """Render ``fig`` with Agg to ``path`` atomically (rendered in memory, then io.atomic)."""
+    import io
+
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
-    path = os.fspath(path)
+    from deepmapping.io.atomic import atomic_write, make_folder
+
     FigureCanvasAgg(fig)
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    tmp = path + ".tmp.png"
-    try:
-        fig.savefig(tmp, format="png", dpi=DPI, facecolor="white")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    make_folder(os.path.dirname(os.path.abspath(os.fspath(path))))
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI, facecolor="white")
+    atomic_write(path, lambda f: f.write(buf.getvalue()))
 
 
 def _unit_label(unit: str) -> str:

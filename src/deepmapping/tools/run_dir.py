@@ -15,7 +15,7 @@ import numpy as np
 from deepmapping.api import Result
 from deepmapping.core import se2
 from deepmapping.data import ScanSet
-from deepmapping.io.atomic import write_json, write_text
+from deepmapping.io.atomic import make_folder, write_json, write_text
 
 
 def default_run_dir(method: str, root: str | Path = "runs") -> Path:
@@ -41,14 +41,15 @@ def write_run(out: Path, scans: ScanSet, result: Result, data_info: dict, plots:
     from deepmapping.io.ply import write_ply
     from deepmapping.io.poses import write_pose_text, write_poses_npy
 
-    out.mkdir(parents=True, exist_ok=True)
+    make_folder(out)
     write_poses_npy(out / "poses.npy", result.poses)
     write_pose_text(out / "poses.txt", result.poses)
     _write_trajectories(out, scans, result.poses)
     write_config(out, result.config)
     write_json(out / "run.json", {"method": result.method, "runtime_s": result.runtime_s,
                                   "num_scans": scans.num_scans, "unit": scans.unit,
-                                  "unit_scale": scans.unit_scale, **data_info})
+                                  "unit_scale": scans.unit_scale, **data_info,
+                                  "rollbacks": result.history.get("rollbacks", [])})
     cloud, colors = _global_cloud(scans, result.poses)
     write_ply(out / "map.ply", cloud, colors)
     write_pcd(out / "map.pcd", cloud)
@@ -93,7 +94,8 @@ def _global_cloud(scans: ScanSet, poses: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 def _write_history_csv(path: Path, history: dict) -> None:
-    keys = [k for k in history if isinstance(history[k], list)]
+    """One row per log; the rollbacks (events, not a column) are in run.json."""
+    keys = [k for k in history if isinstance(history[k], list) and k != "rollbacks"]
     rows = [",".join(keys)]
     for vals in zip(*(history[k] for k in keys)):
         rows.append(",".join("" if v is None else repr(v) for v in vals))

@@ -9,6 +9,7 @@ import numpy as np
 
 from deepmapping.api import Result
 from deepmapping.data import ScanSet
+from deepmapping.io.atomic import make_folder
 from deepmapping.tools.run_dir import _write_history_csv, write_config, write_json
 
 GRID_CELLS = 64  # default occupancy export: the map's longest side in this many voxels
@@ -39,12 +40,13 @@ def write_occupancy(out: Path, scans: ScanSet, result: Result, voxel: float | No
 def write_run_3d(out: Path, scans: ScanSet, result: Result, data_info: dict, plots: bool = True) -> list[Path]:
     from deepmapping.tools.export3d import write_registered_cloud
 
-    out.mkdir(parents=True, exist_ok=True)
+    make_folder(out)
     write_poses_3d(out, result.poses)
     write_config(out, result.config)
     write_json(out / "run.json", {"method": result.method, "runtime_s": result.runtime_s,
                                   "num_scans": scans.num_scans, "unit": scans.unit,
-                                  "unit_scale": scans.unit_scale, **data_info})
+                                  "unit_scale": scans.unit_scale, **data_info,
+                                  "rollbacks": result.history.get("rollbacks", [])})
     write_registered_cloud(out / "map.ply", scans.points, scans.valid, result.poses)
     write_registered_cloud(out / "map.pcd", scans.points, scans.valid, result.poses)
     _write_3dtk_frames(out, scans, result.poses)
@@ -65,7 +67,7 @@ def _write_3dtk_frames(out: Path, scans: ScanSet, poses: np.ndarray) -> None:
 
     if not is_3dtk_folder(Path(scans.source)):
         return
-    (out / "frames").mkdir(exist_ok=True)
+    make_folder(out / "frames")
     for name, pose in zip(scans.names, poses):
         write_frames(out / "frames" / f"{name}.frames", pose[None])
         write_pose(out / "frames" / f"{name}.pose", pose)
