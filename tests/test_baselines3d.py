@@ -213,3 +213,18 @@ def test_multiway_starts_odometry_pairs_where_the_previous_scan_is(scans, monkey
         np.testing.assert_allclose(g, se3.relative(nodes[j], nodes[i]), atol=1e-9)
     _assert_close_relative(multiway_registration(clouds, edges="window:1"), gt)
 
+
+def test_default_scales_do_not_go_below_the_point_spacing(scans):
+    """Sparse scans (few points, e.g. a room at 40 x 30 pixels): the voxel is at least the median
+    nearest-neighbour distance, else the normals' radius holds no neighbour; dense ones keep d / 100."""
+    from deepmapping.core.icp3d import default_scales, point_spacing
+
+    clouds, _ = scans
+    dense = default_scales(clouds)
+    diag = np.median([np.linalg.norm(c.max(0) - c.min(0)) for c in clouds])
+    assert point_spacing(clouds) < diag / 100 and dense.voxel == pytest.approx(diag / 100)
+    sparse = [c[:: 40] for c in clouds]  # 75 points a scan
+    gap = point_spacing(sparse)
+    assert gap > diag / 100 and default_scales(sparse).voxel == pytest.approx(gap)
+    assert default_scales(sparse, voxel_size=0).normals_radius == pytest.approx(2 * gap)
+    assert default_scales(sparse, voxel_size=0.01).voxel == 0.01  # explicit values win
