@@ -253,6 +253,15 @@ def test_tum_errors_name_the_file(tmp_path):
     assert load_tum_rgbd(root).gt_poses is None  # no ground truth: every frame, nothing to evaluate
 
 
+def test_auto_warm_start_is_icp_for_handheld_depth(tmp_path):
+    from deepmapping.api import auto_warm_start
+
+    s = load_scans(seven_scenes(tmp_path), depth=DepthOptions(pixel_stride=1))
+    assert auto_warm_start(s) == "icp-plane"  # handheld, 6-DoF depth images (was a cold start)
+    s.pose_dof = 3
+    assert auto_warm_start(s) == "icp-planar"  # AVD-like: planar poses
+
+
 def test_rendered_room_through_the_7scenes_layout(tmp_path):
     """A simulated room saved as 7-Scenes (K file, 6-DoF camera-to-world pose files, OpenCV axes):
     the loaded gt poses put the frames' points on each other."""

@@ -146,14 +146,14 @@ def warm_start_poses(scans: ScanSet, cfg: Config, progress=None) -> np.ndarray:
 
 
 def auto_warm_start(scans: ScanSet) -> str:
-    """warm_start "auto": planar ICP for AVD-like depth images with planar poses, a cold start for
-    6-DoF depth images, point-to-plane ICP for point clouds and 2D scans, loop closures for
-    keyframed 2D logs (thousands of scans, loops of hundreds of metres)."""
+    """warm_start "auto": planar ICP for AVD-like depth images with planar poses (6-DoF ICP from the
+    identity fails on their 30 deg turns), point-to-plane ICP for 6-DoF depth images (handheld:
+    on 7-Scenes 6-10 mm, point-to-point 11-14 mm, no registration 60 mm, docs/results.md), point
+    clouds and 2D scans; loop closures for keyframed 2D logs (thousands of scans, loops of
+    hundreds of metres)."""
     if not scans.is_3d:
         return "loop-closure" if scans.sequence is not None else "icp-plane"
-    if scans.grid_shape is None:
-        return "icp-plane"
-    return "icp-planar" if scans.pose_dof == 3 else "none"
+    return "icp-planar" if scans.grid_shape is not None and scans.pose_dof == 3 else "icp-plane"
 
 
 def _read_init(path, is_3d: bool) -> np.ndarray:

@@ -91,7 +91,8 @@ def register(
     set: Optional[List[str]] = typer.Option(None, "--set", help="Override a setting: --set optim.epochs=200."),
     epochs: Optional[int] = typer.Option(None, help="Number of epochs."),
     warm_start: Optional[str] = typer.Option(None, help="auto (default: icp-plane; loop-closure for logs; icp-planar "
-                                             "for AVD-like 3D) | icp-plane | icp-point | loop-closure | icp-planar | "
+                                             "for AVD-like depth images with planar poses) | icp-plane | icp-point | "
+                                             "loop-closure | icp-planar | "
                                              "multiway | file (the poses the data came with) | none."),
     init: Optional[Path] = typer.Option(None, help="Initial poses file (warm start), in the scans' units."),
     gt: Optional[Path] = typer.Option(None, help="Ground-truth poses (overrides the folder's own)."),
