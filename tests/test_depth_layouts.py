@@ -262,6 +262,21 @@ def test_auto_warm_start_is_icp_for_handheld_depth(tmp_path):
     assert auto_warm_start(s) == "icp-planar"  # AVD-like: planar poses
 
 
+def test_success_threshold_follows_the_data(tmp_path):
+    """450 mm only for the AVD protocol (depth images, planar poses); 2 % of the typical range else."""
+    from deepmapping.api import evaluate_poses
+    from deepmapping.core.metrics3d import AVD_SUCCESS_M, RELATIVE_SUCCESS, typical_range
+
+    s = load_scans(seven_scenes(tmp_path), depth=DepthOptions(pixel_stride=1))
+    m = evaluate_poses(s, poses(5))
+    assert m["unit"] == "mm" and m["success"]
+    assert m["success_threshold"] == pytest.approx(1000 * RELATIVE_SUCCESS * typical_range(s.points, s.valid))
+    assert 40 < m["success_threshold"] < 50  # the plane is about 2.2 m away
+    s.pose_dof = 3
+    assert evaluate_poses(s, s.gt_poses)["success_threshold"] == pytest.approx(1000 * AVD_SUCCESS_M)
+    assert evaluate_poses(s, s.gt_poses, success_threshold=5.0)["success_threshold"] == 5.0
+
+
 def test_rendered_room_through_the_7scenes_layout(tmp_path):
     """A simulated room saved as 7-Scenes (K file, 6-DoF camera-to-world pose files, OpenCV axes):
     the loaded gt poses put the frames' points on each other."""

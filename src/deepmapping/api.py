@@ -304,13 +304,17 @@ def evaluate_relations(scans: ScanSet, poses: np.ndarray, relations_path=None) -
 
 
 def evaluate_poses(scans: ScanSet, poses: np.ndarray, success_threshold: float | None = None) -> dict:
-    """The paper's metrics (ATE, point distance, success; rotation errors) against scans.gt_poses."""
+    """The paper's metrics (ATE, point distance, success; rotation errors) against scans.gt_poses.
+
+    success_threshold None: 20 px (2D), 450 mm for AVD-like depth images (planar poses, the paper's
+    protocol), 2 % of the typical range for other 3D data (core.metrics3d.success_threshold_3d)."""
     if scans.is_3d:
         from deepmapping.core.metrics3d import evaluate_3d as evaluate
     else:
         from deepmapping.core.metrics import evaluate
     from deepmapping.core.evo_metrics import evo_metrics
 
+    extra = {"avd_protocol": scans.grid_shape is not None and scans.pose_dof == 3} if scans.is_3d else {}
     metrics = evaluate(poses, scans.gt_poses, scans.points, scans.valid, unit_scale=scans.unit_scale,
-                       success_threshold=success_threshold)
+                       success_threshold=success_threshold, **extra)
     return metrics | {"unit": scans.unit, "evo": evo_metrics(poses, scans.gt_poses, scans.unit_scale)}
