@@ -86,3 +86,26 @@ def test_corrupt_depth_image_is_a_one_line_error_and_no_run_folder(datasets, tmp
 def test_multiway_on_2d_scans_is_a_clear_error(sim_folder, tmp_path):
     res = dm("register", sim_folder, "--method", "multiway", "--out", tmp_path / "r")
     assert res.returncode == 2 and "3D scans only" in res.stderr
+
+
+def test_register_tum_folder_with_frame_options_then_evaluate(tmp_path):
+    """Frame and pixel flags reach the loader, the dropped-frames note is printed, run.json keeps the
+    options so that `evaluate` reads the same frames; a bad flag is one line and no run folder."""
+    from test_depth_layouts import tum
+
+    data = tum(tmp_path / "seq", k=8, gt_span=(1, 8))  # frame 0 has no ground truth within 20 ms
+    out = tmp_path / "run"
+    res = ok(dm("register", data, "--method", "icp-plane", "--frames", "0:6", "--every", "2", "--pixel-stride", "2",
+                "--out", out, "--no-plots"))
+    assert "note:" in res.stderr and "1 of 8 depth frames" in res.stderr
+    run = json.loads((out / "run.json").read_text())
+    assert run["depth"] == {"every": 2, "frames": [0, 6], "pixel_stride": 2, "image_size": None, "max_depth_m": None,
+                            "intrinsics": None}
+    assert np.load(out / "poses.npy").shape == (3, 4, 4)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["unit"] == "mm" and 0 < metrics["success_threshold"] < 450.0  # 2 % of the typical range
+    ok(dm("evaluate", out))
+    assert json.loads((out / "metrics.json").read_text())["ate"] == pytest.approx(metrics["ate"])
+    bad = tmp_path / "bad"
+    assert_one_line_error(dm("register", data, "--image-size", "80", "--out", bad), "--image-size", bad)
+    assert_one_line_error(dm("register", data, "--frames", "7:", "--out", bad), "0 frame(s) of 7", bad)

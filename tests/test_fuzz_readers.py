@@ -38,7 +38,7 @@ from PIL import Image
 
 from deepmapping.data import ScanSet
 from deepmapping.errors import InputError
-from deepmapping.io import carmen, kitti, poses, poses3d, rgbd, threedtk
+from deepmapping.io import carmen, depth, kitti, poses, poses3d, rgbd, sevenscenes, threedtk, tum_rgbd
 from deepmapping.io.bunny import read_bun_conf
 from deepmapping.io.loaders import load_scans, read_scan_file
 from deepmapping.io.pcd import read_pcd
@@ -173,6 +173,25 @@ def json_object(out):
 def depth_image(out):
     assert isinstance(out, np.ndarray) and out.dtype == np.uint16 and out.ndim == 2
     return out
+
+
+def camera(out: depth.Camera):
+    vals = (out.fx, out.fy, out.cx, out.cy, out.depth_scale)
+    assert _finite(vals) and out.fx > 0 and out.fy > 0
+    return vals
+
+
+def depth_list(out):
+    stamps, files = out
+    assert stamps.dtype == np.float64 and len(stamps) == len(files) >= 1 and _finite(stamps)
+    assert (np.diff(stamps) > 0).all()
+    return repr((stamps.tolist(), [f.name for f in files]))
+
+
+def trajectory(out):
+    stamps, mats = out
+    assert stamps.shape == (len(mats),) and _finite(stamps)
+    return np.concatenate([stamps, poses_3d(mats).ravel()])
 
 
 def bun_conf(out):
@@ -341,6 +360,20 @@ def depth_images(k: int = 3) -> list[np.ndarray]:
     return [(1500 + 100 * i + 37 * np.add.outer(np.arange(6), np.arange(8))).astype(np.uint16) for i in range(k)]
 
 
+def pose_4x4_text(p: np.ndarray) -> str:
+    return "".join(" ".join(f"{v:.9e}" for v in row) + "\n" for row in p)
+
+
+def tum_stamped_text(p: np.ndarray, stamps) -> str:
+    from deepmapping.core import se3
+
+    return "# ground truth\n" + "".join(f"{t:.4f} " + " ".join(f"{v:.9g}" for v in row) + "\n"
+                                       for t, row in zip(stamps, se3.to_xyz_quat(p)))
+
+
+DEPTH_STAMPS = (1305031102.175304, 1305031102.211214, 1305031102.243211)
+DEPTH_LIST = "# depth maps\n# timestamp filename\n" + "".join(f"{t:.6f} depth/{t:.6f}.png\n" for t in DEPTH_STAMPS)
+K_TEXT = " 5.0e+00\t 0.0e+00\t 3.5e+00\t\n 0.0e+00\t 5.0e+00\t 2.5e+00\t\n 0.0e+00\t 0.0e+00\t 1.0e+00\t\n"
 INTRINSICS = {"width": 8, "height": 6, "fx": 5.0, "fy": 5.0, "cx": 3.5, "cy": 2.5, "depth_scale": 1000.0,
               "max_depth_m": 10.0}
 BUN_CONF = ("camera 0.0 0.0 0.3 0.0 0.0 0.0 1.0\n"
@@ -407,6 +440,11 @@ SPECS = [
     Spec("depth-png", ".png", rgbd.read_depth_png, depth_image, raw=lambda: png16(depth_images(1)[0])),
     Spec("intrinsics-json", ".json", rgbd.read_json, json_object, text=lambda: json.dumps(INTRINSICS)),
     Spec("bun-conf", ".conf", read_bun_conf, bun_conf, text=lambda: BUN_CONF),
+    Spec("7scenes-pose", ".pose.txt", sevenscenes.read_pose_matrix, rigid, text=lambda: pose_4x4_text(rigid_poses(1, 9)[0])),
+    Spec("camera-k", ".txt", lambda p: depth.read_k_matrix(p, 1000.0), camera, text=lambda: K_TEXT),
+    Spec("tum-depth-list", ".txt", tum_rgbd.read_depth_list, depth_list, text=lambda: DEPTH_LIST),
+    Spec("tum-trajectory", ".txt", poses3d.read_tum_trajectory, trajectory,
+         text=lambda: tum_stamped_text(rigid_poses(3, 10), np.array(DEPTH_STAMPS) + 0.003)),
 ]
 TEXT_SPECS = [s for s in SPECS if s.text is not None]
 BY_NAME = {s.name: s for s in SPECS}
@@ -769,6 +807,23 @@ def rgbd_files() -> dict[str, bytes]:
     return dict(_rgbd_files())
 
 
+def sevenscenes_files() -> dict[str, bytes]:
+    files = {}
+    for i, (img, pose) in enumerate(zip(depth_images(), rigid_poses(3, 11))):
+        files[f"frame-{i:06d}.depth.png"] = png16(img)
+        files[f"frame-{i:06d}.pose.txt"] = pose_4x4_text(pose).encode()
+    files["camera-intrinsics.txt"] = K_TEXT.encode()
+    return files
+
+
+def tum_rgbd_files() -> dict[str, bytes]:
+    files = {f"depth/{t:.6f}.png": png16(img) for t, img in zip(DEPTH_STAMPS, depth_images())}
+    files["depth.txt"] = DEPTH_LIST.encode()
+    files["groundtruth.txt"] = tum_stamped_text(rigid_poses(3, 12), np.array(DEPTH_STAMPS) - 0.004).encode()
+    files["camera-intrinsics.txt"] = K_TEXT.encode()  # the images are 8 x 6, not TUM's 640 x 480
+    return files
+
+
 def threedtk_files() -> dict[str, bytes]:
     files = {}
     for i in range(3):
@@ -797,6 +852,8 @@ LAYOUTS: dict[str, tuple[str, Callable[[], dict[str, bytes]]]] = {
     "clouds-3d": ("folder", clouds_3d_files),
     "lidar": ("lidar", lidar_files),
     "rgbd": ("rgbd", rgbd_files),
+    "7scenes": ("7scenes", sevenscenes_files),
+    "tum-rgbd": ("tum-rgbd", tum_rgbd_files),
     "3dtk": ("3dtk", threedtk_files),
     "kitti": ("kitti", kitti_files),
     "bunny": ("bunny", bunny_files),

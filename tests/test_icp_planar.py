@@ -82,7 +82,7 @@ def _scans(dim, grid, dof):
 
 def test_auto_warm_start_and_errors():
     assert auto_warm_start(_scans(3, True, 3)) == "icp-planar"
-    assert auto_warm_start(_scans(3, True, 6)) == "none"
+    assert auto_warm_start(_scans(3, True, 6)) == "icp-plane"  # 6-DoF depth images: handheld (7-Scenes), was a cold start
     assert auto_warm_start(_scans(3, False, 6)) == "icp-plane"
     assert auto_warm_start(_scans(2, False, 3)) == "icp-plane"
     log = _scans(2, False, 3)

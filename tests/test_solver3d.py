@@ -168,8 +168,9 @@ def test_auto_warm_start_is_planar_icp_for_depth_images_and_icp_for_clouds(lidar
     write_rgbd_dataset(tmp_path, num_trajectories=1, frames=3, seed=2)
     depth = load_rgbd(tmp_path / "traj_000", stride=4)
     np.testing.assert_array_equal(warm_start_poses(depth, cfg), baseline_poses(depth, cfg, "icp-planar"))
-    depth.pose_dof = 6  # 6-DoF depth images: a cold start
-    np.testing.assert_array_equal(warm_start_poses(depth, cfg), np.tile(np.eye(4), (3, 1, 1)))
+    depth.pose_dof = 6  # 6-DoF depth images (handheld): point-to-plane ICP
+    # Open3D's ICP may differ in the last bits between two runs
+    np.testing.assert_allclose(warm_start_poses(depth, cfg), baseline_poses(depth, cfg, "icp-plane"), atol=1e-9)
     clouds = warm_start_poses(lidar_problem, cfg)  # incremental ICP: close to the truth
     from deepmapping.core.metrics3d import ate_3d
 

@@ -146,14 +146,14 @@ def warm_start_poses(scans: ScanSet, cfg: Config, progress=None) -> np.ndarray:
 
 
 def auto_warm_start(scans: ScanSet) -> str:
-    """warm_start "auto": planar ICP for AVD-like depth images with planar poses, a cold start for
-    6-DoF depth images, point-to-plane ICP for point clouds and 2D scans, loop closures for
-    keyframed 2D logs (thousands of scans, loops of hundreds of metres)."""
+    """warm_start "auto": planar ICP for AVD-like depth images with planar poses (6-DoF ICP from the
+    identity fails on their 30 deg turns), point-to-plane ICP for 6-DoF depth images (handheld:
+    on 7-Scenes 6-10 mm, point-to-point 11-14 mm, no registration 60 mm, docs/results.md), point
+    clouds and 2D scans; loop closures for keyframed 2D logs (thousands of scans, loops of
+    hundreds of metres)."""
     if not scans.is_3d:
         return "loop-closure" if scans.sequence is not None else "icp-plane"
-    if scans.grid_shape is None:
-        return "icp-plane"
-    return "icp-planar" if scans.pose_dof == 3 else "none"
+    return "icp-planar" if scans.grid_shape is not None and scans.pose_dof == 3 else "icp-plane"
 
 
 def _read_init(path, is_3d: bool) -> np.ndarray:
@@ -304,13 +304,17 @@ def evaluate_relations(scans: ScanSet, poses: np.ndarray, relations_path=None) -
 
 
 def evaluate_poses(scans: ScanSet, poses: np.ndarray, success_threshold: float | None = None) -> dict:
-    """The paper's metrics (ATE, point distance, success; rotation errors) against scans.gt_poses."""
+    """The paper's metrics (ATE, point distance, success; rotation errors) against scans.gt_poses.
+
+    success_threshold None: 20 px (2D), 450 mm for AVD-like depth images (planar poses, the paper's
+    protocol), 2 % of the typical range for other 3D data (core.metrics3d.success_threshold_3d)."""
     if scans.is_3d:
         from deepmapping.core.metrics3d import evaluate_3d as evaluate
     else:
         from deepmapping.core.metrics import evaluate
     from deepmapping.core.evo_metrics import evo_metrics
 
+    extra = {"avd_protocol": scans.grid_shape is not None and scans.pose_dof == 3} if scans.is_3d else {}
     metrics = evaluate(poses, scans.gt_poses, scans.points, scans.valid, unit_scale=scans.unit_scale,
-                       success_threshold=success_threshold)
+                       success_threshold=success_threshold, **extra)
     return metrics | {"unit": scans.unit, "evo": evo_metrics(poses, scans.gt_poses, scans.unit_scale)}

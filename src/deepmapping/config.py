@@ -185,16 +185,17 @@ class ICPConfig(_Section):
 
 class WarmStartConfig(_Section):
     # "auto" (3D): icp-planar for AVD-like depth images with planar poses (6-DoF ICP from the
-    # identity is wrong on most of their 30 deg turns), none for 6-DoF depth images,
-    # icp-plane for point-cloud sequences
+    # identity is wrong on most of their 30 deg turns), icp-plane for 6-DoF depth images
+    # (handheld, 7-Scenes) and point-cloud sequences
     # 2D: icp-plane for scans, loop-closure for keyframed logs (CARMEN)
     method: WarmStart = "auto"
     path: str | None = None  # initial poses file (method="file")
 
 
 class EvalConfig(_Section):
-    # ATE below this (in reporting units: px for 2D, mm for AVD-like 3D) = success.
-    # None = 20 px for 2D (supplementary B), 450 mm for 3D (supplementary C).
+    # ATE below this (in reporting units: px for 2D, mm for depth images) = success. None = 20 px
+    # for 2D (supplementary B), 450 mm for AVD-like depth images with planar poses (supplementary
+    # C), 2 % of the typical range for other 3D data (core.metrics3d.success_threshold_3d)
     success_threshold: PosFloat | None = None
     voxel_size: PosFloat | None = None  # 3D occupancy export (points' units); None = 1/64 of the map's extent
 

@@ -78,6 +78,7 @@ class ScanSet:
     grid_shape: tuple[int, int] | None = None
     pose_dof: int = 3
     sequence: FullSequence | None = None  # every scan of the input, when these are keyframes
+    notes: list[str] = field(default_factory=list)  # what the loader left out or assumed (the CLI prints them)
 
     @property
     def num_scans(self) -> int:

@@ -24,8 +24,11 @@ def run_evaluate(run_dir: Path, gt: Path | None = None) -> dict:
         raise InputError(f"{info_path}: corrupt run description") from None
     if not (run_dir / "poses.npy").is_file():
         raise InputError(f"{run_dir}: run has no poses.npy (unfinished or interrupted?)")
+    from deepmapping.io.depth import DepthOptions
+
+    depth = DepthOptions.from_dict(info["depth"]) if info.get("depth") else None  # the frames the run had
     scans = load_scans(info["data"], fmt=info.get("format"), gt_path=gt or info.get("gt"),
-                       keyframes=info.get("keyframes"), non_keyframes=info.get("non_keyframes"))
+                       keyframes=info.get("keyframes"), non_keyframes=info.get("non_keyframes"), depth=depth)
     relations = scans.gt_poses is None and scans.sequence is not None and scans.sequence.relations_path
     if scans.gt_poses is None and not relations:
         raise InputError(f"{info['data']}: no ground truth known; pass --gt FILE")

@@ -77,9 +77,11 @@ def _simulate_3d(out: Path, kind: str, trajectories: int, frames: int, seed: int
                     "  deepmapping register data/traj0 --method icp-plane --out runs/icp\n\n"
                     "  deepmapping register data/traj0 --profile paper --set optim.epochs=500\n\n"
                     "  deepmapping register data/traj0 --out runs/dm --resume   # after Ctrl-C\n\n"
-                    "  deepmapping register ../shared/data/carmen/fr079.clf.bz2 --warm-start file --keyframes motion:0.5,15")
+                    "  deepmapping register ../shared/data/carmen/fr079.clf.bz2 --warm-start file --keyframes motion:0.5,15\n\n"
+                    "  deepmapping register ../shared/data/7scenes-redkitchen --frames 0:48 --every 3 --image-size 80x60")
 def register(
-    data: Path = typer.Argument(..., help="Scan folder (authors' layout, .pcd/.ply/.npy scans, depth images, 3DTK) "
+    data: Path = typer.Argument(..., help="Scan folder (authors' layout, .pcd/.ply/.npy scans, depth images: rgbd, "
+                                "7-Scenes, TUM RGB-D; 3DTK, KITTI) "
                                 "or a CARMEN log (.clf/.log, .gz/.bz2)."),
     method: str = typer.Option("deepmapping", help=METHODS),
     out: Optional[Path] = typer.Option(None, help="Run folder (default: runs/<timestamp>_<method>)."),
@@ -89,7 +91,8 @@ def register(
     set: Optional[List[str]] = typer.Option(None, "--set", help="Override a setting: --set optim.epochs=200."),
     epochs: Optional[int] = typer.Option(None, help="Number of epochs."),
     warm_start: Optional[str] = typer.Option(None, help="auto (default: icp-plane; loop-closure for logs; icp-planar "
-                                             "for AVD-like 3D) | icp-plane | icp-point | loop-closure | icp-planar | "
+                                             "for AVD-like depth images with planar poses) | icp-plane | icp-point | "
+                                             "loop-closure | icp-planar | "
                                              "multiway | file (the poses the data came with) | none."),
     init: Optional[Path] = typer.Option(None, help="Initial poses file (warm start), in the scans' units."),
     gt: Optional[Path] = typer.Option(None, help="Ground-truth poses (overrides the folder's own)."),
@@ -98,6 +101,17 @@ def register(
                                             "motion:METRES,DEGREES | time:SECONDS (default motion:0.5,15)."),
     non_keyframes: Optional[str] = typer.Option(None, help="Logs: the other scans' poses: icp (default: "
                                                 "odometry from the nearest keyframe, then matched to the keyframes around it) | odometry."),
+    every: int = typer.Option(1, help="Depth images: keep every k-th frame (of the --frames range)."),
+    frames: Optional[str] = typer.Option(None, help="Depth images: frames START:STOP, positions in the folder's "
+                                         "frame list (0-based, STOP excluded; e.g. 0:48)."),
+    pixel_stride: Optional[int] = typer.Option(None, help="Depth images: keep every s-th row and column (default: "
+                                               "rgbd all; 7scenes and tum-rgbd about 80 pixels across, 80x60)."),
+    image_size: Optional[str] = typer.Option(None, help="Depth images: WIDTHxHEIGHT pixels kept, e.g. 80x60 "
+                                             "(instead of --pixel-stride)."),
+    max_depth: Optional[float] = typer.Option(None, help="Depth images: pixels deeper than this (metres) are "
+                                              "invalid, as 0 and 65535 always are."),
+    intrinsics: Optional[str] = typer.Option(None, help="Depth images: the camera: a 3x3 K text file, an "
+                                             "intrinsics.json, or tum | fr1 | fr2 | fr3 | 7scenes."),
     device: Optional[str] = typer.Option(None, help="auto | cpu | cuda."),
     seed: Optional[int] = typer.Option(None, help="Seed (fixes everything)."),
     resume: bool = typer.Option(False, help="Continue an interrupted run in --out from its checkpoint."),
@@ -110,6 +124,7 @@ def register(
     from deepmapping.cli.progress import console
     from deepmapping.tools.run_dir import default_run_dir
 
+    depth = register_cmd.depth_options(every, frames, pixel_stride, image_size, max_depth, intrinsics)
     if resume:
         if out is None:
             raise typer.BadParameter("--resume needs --out RUN_DIR")
@@ -121,7 +136,7 @@ def register(
         cfg(False)  # a bad setting fails before any data is read
     out = out or default_run_dir(method)
     scans, result = register_cmd.run_register(data, out, cfg, format, gt, resume, plots=not no_plots,
-                                              keyframes=keyframes, non_keyframes=non_keyframes)
+                                              keyframes=keyframes, non_keyframes=non_keyframes, depth=depth)
     if result.metrics:
         print_metrics(console, {result.method: result.metrics})
     if result.history.get("rollbacks"):

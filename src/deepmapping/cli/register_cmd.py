@@ -32,6 +32,15 @@ def build_config(profile, config_file, method, epochs, warm_start, init, device,
     return load_config(profile, config_file, overrides)
 
 
+def depth_options(every, frames, pixel_stride, image_size, max_depth, intrinsics):
+    """The depth-image options of the flags (io.depth.DepthOptions); ConfigError on a bad one."""
+    from deepmapping.io.depth import DepthOptions, parse_frames, parse_image_size
+
+    return DepthOptions(every=every, frames=parse_frames(frames) if frames is not None else None,
+                        pixel_stride=pixel_stride, image_size=parse_image_size(image_size) if image_size else None,
+                        max_depth_m=max_depth, intrinsics=intrinsics)
+
+
 def resume_config(out: Path):
     from deepmapping.config import load_config
 
@@ -41,8 +50,9 @@ def resume_config(out: Path):
 
 
 def run_register(data: Path, out: Path, cfg, fmt, gt, resume: bool, plots: bool = True, quiet: bool = False,
-                 keyframes: str | None = None, non_keyframes: str | None = None):
-    """cfg: a Config, or a function is_3d -> Config (the profile depends on the data)."""
+                 keyframes: str | None = None, non_keyframes: str | None = None, depth=None):
+    """cfg: a Config, or a function is_3d -> Config (the profile depends on the data); depth: the
+    depth-image options (io.depth.DepthOptions), kept in run.json for `deepmapping evaluate`."""
     from deepmapping.io.loaders import load_scans
 
     # every input problem is raised before out/ exists (the --init file and the device included),
@@ -50,7 +60,9 @@ def run_register(data: Path, out: Path, cfg, fmt, gt, resume: bool, plots: bool 
     cfg0 = cfg(False) if callable(cfg) else cfg
     init = cfg0.warm_start.path if cfg0.warm_start.method == "file" and not resume else None
     scans = load_scans(data, fmt=fmt, gt_path=gt, init_path=init, keyframes=keyframes,
-                       non_keyframes=non_keyframes)
+                       non_keyframes=non_keyframes, depth=depth)
+    for note in scans.notes:
+        console.print(f"note: {note}", highlight=False, soft_wrap=True)
     cfg = cfg(scans.is_3d) if callable(cfg) else cfg
     from deepmapping.api import register, resolve_device
     from deepmapping.io.atomic import make_folder
@@ -61,7 +73,9 @@ def run_register(data: Path, out: Path, cfg, fmt, gt, resume: bool, plots: bool 
     if cfg.method in ("deepmapping", "direct"):
         resolve_device(cfg.device)
     info = {"data": str(data.resolve()), "format": fmt, "gt": str(Path(gt).resolve()) if gt else None,
-            "keyframes": keyframes, "non_keyframes": non_keyframes}
+            "keyframes": keyframes, "non_keyframes": non_keyframes, "notes": scans.notes}
+    if depth is not None and not depth.is_default():
+        info["depth"] = depth.to_dict()
     with folder_lock(make_folder(out)):  # a second command on this folder refuses (FolderBusy)
         write_config(out, cfg)
         write_json(out / "run.json", {"method": cfg.method, "status": "running", **info})

@@ -6,6 +6,11 @@ from rich.table import Table
 
 
 def metrics_table(rows: dict[str, dict], title: str = "Evaluation") -> Table:
+    """One row per method; the title names the success criterion when the rows share one."""
+    limits = {(m.get("success_threshold"), m.get("unit", "")) for m in rows.values()}
+    if len(limits) == 1 and None not in next(iter(limits)):
+        value, unit = next(iter(limits))
+        title = f"{title} (success: ATE < {value:.3g} {unit})"
     table = Table(title=title)
     for col in ("method", "ATE", "point dist.", "rot. RMSE (deg)", "success", "runtime (s)"):
         table.add_column(col, justify="right" if col != "method" else "left")

@@ -54,7 +54,9 @@ def build_pose_graph(clouds, init=None, voxel_size=None, max_correspondence_dist
         # Odometry pairs first: their chain gives the initial node poses (when no init).
         ordered = sorted(pairs, key=lambda p: (p[1] - p[0] != 1, p))
         for done, (i, j) in enumerate(ordered, start=1):
-            guess = se3.relative(poses[j], poses[i])
+            # without init, scan j of an odometry pair is not placed yet: start it where scan i is
+            # (as incremental ICP does), not at the origin (that guess was scan i's whole pose)
+            guess = np.eye(4) if init is None and j == i + 1 else se3.relative(poses[j], poses[i])
             res = register_pair(pcds[i], pcds[j], guess, scales)
             failed = not plausible(res, guess, scales, pcds[i].get_center())
             results[i, j] = (guess if failed else res.transformation), failed

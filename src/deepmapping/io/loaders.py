@@ -1,7 +1,8 @@
 """Dataloaders: turn a folder of scans (+ optional poses) into a validated ScanSet.
 
 Formats live in a registry so later formats (KITTI, CARMEN, 3DTK, ...) only need
-``register_loader(name, loader, detector)`` (3D: "rgbd", "lidar", "bunny", "3dtk" at the end):
+``register_loader(name, loader, detector)`` (3D: "rgbd", "lidar", "bunny", "3dtk", "kitti",
+"tum-rgbd", "7scenes" at the end; 2D logs: "carmen"):
 
 - ``"authors"``: the DeepMapping authors' layout, a folder with ``000.pcd, 001.pcd, ...``
   and ``gt_pose.mat`` (key ``pose``, rows ``[x_px, y_px, theta]``). Points are px/512;
@@ -315,6 +316,7 @@ def load_scans(
     init_path: str | os.PathLike | None = None,
     keyframes: str | None = None,
     non_keyframes: str | None = None,
+    depth=None,
 ) -> ScanSet:
     """Load scans from ``path`` with the loader ``fmt`` (auto-detected when None).
 
@@ -326,6 +328,8 @@ def load_scans(
     keyframes: for sequences read from one log (CARMEN), which scans to register
     (see :mod:`deepmapping.core.keyframes`), and how the other scans are placed
     (``non_keyframes``: "icp" or "odometry"); other formats refuse both.
+    depth: for depth-image folders (``DEPTH_FORMATS``), a ``io.depth.DepthOptions`` (frames, pixels,
+    max depth, camera); other formats refuse one that is not the default.
     Returns a validated ScanSet (names = file names, source = folder path); every problem
     raises InputError (``"<path>: <problem>"``), an unknown ``fmt`` raises ConfigError.
     """
@@ -339,6 +343,11 @@ def load_scans(
     extra = {k: v for k, v in (("keyframes", keyframes), ("non_keyframes", non_keyframes)) if v is not None}
     if extra and fmt not in KEYFRAME_FORMATS:
         raise ConfigError(f"{path}: keyframes apply to log formats ({', '.join(KEYFRAME_FORMATS)}), not {fmt!r}")
+    if depth is not None and fmt in DEPTH_FORMATS:
+        extra["depth"] = depth
+    elif depth is not None and not depth.is_default():
+        raise ConfigError(f"{path}: frame and pixel options apply to depth images ({', '.join(DEPTH_FORMATS)}), "
+                          f"not {fmt!r}")
     return LOADERS[fmt](
         path,
         Path(gt_path) if gt_path is not None else None,
@@ -363,4 +372,8 @@ register_loader("bunny", _lazy("bunny", "load_bunny"), _lazy("bunny", "is_bunny_
 register_loader("3dtk", _lazy("threedtk", "load_3dtk"), _lazy("threedtk", "is_3dtk_folder"))
 register_loader("carmen", _lazy("carmen", "load_carmen"), _lazy("carmen", "is_carmen_file"))
 register_loader("kitti", _lazy("kitti", "load_kitti"), _lazy("kitti", "is_kitti_folder"))
+# depth-image layouts; registered last, so detected first (a TUM folder also has a depth/ subfolder)
+register_loader("tum-rgbd", _lazy("tum_rgbd", "load_tum_rgbd"), _lazy("tum_rgbd", "is_tum_rgbd_folder"))
+register_loader("7scenes", _lazy("sevenscenes", "load_7scenes"), _lazy("sevenscenes", "is_7scenes_folder"))
 KEYFRAME_FORMATS = ("carmen",)
+DEPTH_FORMATS = ("rgbd", "7scenes", "tum-rgbd")

@@ -23,7 +23,7 @@ from deepmapping.errors import InputError
 from deepmapping.io.atomic import atomic_write, read_user_file, read_user_text
 
 __all__ = [
-    "read_kitti_poses", "write_kitti_poses", "read_tum_poses", "write_tum_poses",
+    "read_kitti_poses", "write_kitti_poses", "read_tum_poses", "read_tum_trajectory", "write_tum_poses",
     "read_poses_npy_3d", "write_poses_npy_3d", "read_poses_3d", "write_poses_3d",
 ]
 
@@ -82,13 +82,18 @@ def read_kitti_poses(path: str | os.PathLike) -> np.ndarray:
 
 def read_tum_poses(path: str | os.PathLike) -> np.ndarray:
     """TUM text (``timestamp x y z qx qy qz qw``) -> (K, 4, 4); quaternions are normalized."""
+    return read_tum_trajectory(path)[1]
+
+
+def read_tum_trajectory(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """TUM text -> (timestamps (K,) float64, poses (K, 4, 4)), for matching poses to frames by time."""
     path = Path(path)
     rows = _rows(path)
     vals = _numbers(path, rows, 8, "TUM timestamp x y z qx qy qz qw")
     norms = np.linalg.norm(vals[:, 4:], axis=1)
     if (norms < 1e-6).any():
         raise InputError(f"{path}: line {rows[int(np.argmax(norms < 1e-6))][0]}: zero quaternion")
-    return se3.from_xyz_quat(vals[:, 1:])
+    return vals[:, 0].copy(), se3.from_xyz_quat(vals[:, 1:])
 
 
 def read_poses_npy_3d(path: str | os.PathLike) -> np.ndarray:

@@ -21,9 +21,11 @@ import numpy as np
 
 from deepmapping.data import ScanSet
 from deepmapping.errors import InputError
+from deepmapping.io.depth import DepthOptions, as_path, camera_from, depth_scanset, select_frames
 from deepmapping.io.poses3d import read_poses_3d
 
-__all__ = ["is_rgbd_folder", "load_rgbd", "read_json", "read_depth_png", "load_pose_files", "sorted_files"]
+__all__ = ["is_rgbd_folder", "load_rgbd", "read_json", "read_intrinsics_json", "read_depth_png", "load_pose_files",
+           "sorted_files"]
 
 _INTR_KEYS = ("width", "height", "fx", "fy", "cx", "cy")
 
@@ -57,18 +59,21 @@ def read_json(path: Path, required: bool = True) -> dict:
     return obj
 
 
-def _intrinsics(path: Path) -> dict:
+def read_intrinsics_json(path: Path, default_scale: float = 1000.0) -> dict:
+    """``intrinsics.json`` as floats (width, height, fx, fy, cx, cy, depth_scale); InputError naming it."""
     intr = read_json(path)
     missing = [k for k in _INTR_KEYS if k not in intr]
     if missing:
         raise InputError(f"{path}: missing keys {', '.join(missing)}")
     try:
         out = {k: float(intr[k]) for k in _INTR_KEYS}
-        out["depth_scale"] = float(intr.get("depth_scale", 1000.0))
+        out["depth_scale"] = float(intr.get("depth_scale", default_scale))
     except (TypeError, ValueError, OverflowError):  # OverflowError: an integer too large for a float
         raise InputError(f"{path}: intrinsics must be numbers") from None
     if not all(np.isfinite(v) for v in out.values()) or min(out["fx"], out["fy"], out["depth_scale"]) <= 0:
         raise InputError(f"{path}: fx, fy and depth_scale must be positive finite numbers")
+    if not (1 <= out["width"] <= 2**20 and 1 <= out["height"] <= 2**20):
+        raise InputError(f"{path}: width and height must be image sizes in pixels")
     return out
 
 
@@ -88,10 +93,13 @@ def read_depth_png(path: Path) -> np.ndarray:
     return arr.astype(np.uint16)
 
 
-def load_pose_files(folder: Path, k: int, gt_path=None, init_path=None, gt_default: str = "gt_poses.txt"):
-    """(gt, init) poses (K, 4, 4) or None; InputError naming the file when the count is not k."""
+def load_pose_files(folder: Path, k: int, gt_path=None, init_path=None, gt_default: str | None = "gt_poses.txt"):
+    """(gt, init) poses (K, 4, 4) or None; InputError naming the file when the count is not k.
+
+    gt: ``gt_path``, else ``folder/gt_default`` when it exists (None: no default file)."""
+    default = folder / gt_default if gt_default else None
     out = []
-    for path in (Path(gt_path) if gt_path else (folder / gt_default if (folder / gt_default).is_file() else None),
+    for path in (Path(gt_path) if gt_path else (default if default is not None and default.is_file() else None),
                  Path(init_path) if init_path else None):
         poses = None if path is None else read_poses_3d(path)
         if poses is not None and len(poses) != k:
@@ -108,36 +116,25 @@ def _pose_dof(folder: Path) -> int:
     return int(dof)
 
 
-def load_rgbd(folder: str | os.PathLike, gt_path=None, init_path=None, stride: int = 1) -> ScanSet:
-    """Back-project every depth image of ``folder`` into an organized ScanSet (metres, unit "mm").
+def load_rgbd(folder: str | os.PathLike, gt_path=None, init_path=None, stride: int = 1,
+              depth: DepthOptions | None = None) -> ScanSet:
+    """Back-project the depth images of ``folder`` into an organized ScanSet (metres, unit "mm").
 
-    ``stride`` keeps every stride-th row and column: grid_shape = (ceil(H/s), ceil(W/s)).
+    ``stride`` keeps every stride-th row and column: grid_shape = (ceil(H/s), ceil(W/s));
+    ``depth`` (frames, pixels, max depth, camera; see io.depth) wins over it. Pose files hold a
+    pose for every image of the folder; the selected frames keep theirs.
     """
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise InputError(f"{folder}: not a folder")
+    folder = as_path(folder)
     if stride < 1:
         raise InputError(f"{folder}: stride must be >= 1, got {stride}")
-    intr = _intrinsics(folder / "intrinsics.json")
+    opts = depth or DepthOptions()
+    json_path = folder / "intrinsics.json"
+    cam = camera_from(opts.intrinsics, [json_path], None, 1000.0, json_path)
     depth_dir = folder / "depth"
     files = sorted_files(depth_dir, (".png",)) if depth_dir.is_dir() else []
     if len(files) < 2:
         raise InputError(f"{depth_dir}: need at least two depth PNGs, found {len(files)}")
-    images = [read_depth_png(f) for f in files]
-    for f, img in zip(files, images):
-        if img.shape != images[0].shape:
-            raise InputError(f"{f}: image size {img.shape[1]}x{img.shape[0]} differs from "
-                             f"{files[0].name} ({images[0].shape[1]}x{images[0].shape[0]})")
-    h, w = images[0].shape
-    if (w, h) != (int(intr["width"]), int(intr["height"])):
-        raise InputError(f"{files[0]}: image is {w}x{h} but intrinsics.json says {intr['width']:g}x{intr['height']:g}")
-    z = np.stack(images)[:, ::stride, ::stride].astype(np.float64) / intr["depth_scale"]
-    v, u = np.mgrid[0:h:stride, 0:w:stride].astype(np.float64)
-    pts = np.stack([(u - intr["cx"]) * z / intr["fx"], (v - intr["cy"]) * z / intr["fy"], z], axis=-1)
-    k, hs, ws = z.shape
-    gt, init = load_pose_files(folder, k, gt_path, init_path)
-    return ScanSet(
-        points=pts.reshape(k, hs * ws, 3).astype(np.float32), valid=(z > 0).reshape(k, hs * ws),
-        gt_poses=gt, init_poses=init, unit_scale=1000.0, unit="mm", ordered=True,
-        names=[f.name for f in files], source=str(folder), grid_shape=(hs, ws), pose_dof=_pose_dof(folder),
-    ).validate()
+    gt, init = load_pose_files(folder, len(files), gt_path, init_path)
+    idx = select_frames(depth_dir, len(files), opts)
+    return depth_scanset(folder, [files[i] for i in idx], cam, opts, None if gt is None else gt[idx],
+                         None if init is None else init[idx], _pose_dof(folder), default_stride=stride)
