@@ -84,9 +84,9 @@ def evaluate_3d(est, gt, points, valid, unit_scale: float = 1.0, success_thresho
     protocol, 2 % of the typical range otherwise).
     """
     est, gt = _check(est, gt)
-    if success_threshold is None:
-        success_threshold = success_threshold_3d(points, valid, avd_protocol) * unit_scale
     threshold = success_threshold
+    if threshold is None:
+        threshold = success_threshold_3d(points, valid, avd_protocol) * unit_scale
     a = ate_3d(est, gt) * unit_scale
     rot = rotation_errors_deg(est, gt, typical_range(points, valid))
     return {

@@ -21,7 +21,7 @@ import numpy as np
 
 from deepmapping.data import ScanSet
 from deepmapping.errors import InputError
-from deepmapping.io.depth import DepthOptions, as_path, camera_from, depth_scanset, select_frames
+from deepmapping.io.depth import DepthOptions, as_path, camera_from, depth_scanset, natural_sorted, select_frames
 from deepmapping.io.poses3d import read_poses_3d
 
 __all__ = ["is_rgbd_folder", "load_rgbd", "read_json", "read_intrinsics_json", "read_depth_png", "load_pose_files",
@@ -32,10 +32,8 @@ _INTR_KEYS = ("width", "height", "fx", "fy", "cx", "cy")
 
 def sorted_files(folder: Path, suffixes: tuple[str, ...]) -> list[Path]:
     """Files of ``folder`` ending in one of ``suffixes`` (no hidden ones), natural order (2 < 10)."""
-    from deepmapping.io.loaders import natural_key
-
-    files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in suffixes and not p.name.startswith(".")]
-    return sorted(files, key=lambda p: natural_key(p.name))
+    return natural_sorted(p for p in folder.iterdir()
+                          if p.is_file() and p.suffix.lower() in suffixes and not p.name.startswith("."))
 
 
 def is_rgbd_folder(path: str | os.PathLike) -> bool:

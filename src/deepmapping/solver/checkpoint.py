@@ -51,10 +51,6 @@ def write(path, data: dict) -> None:
     atomic_write(Path(path), lambda f: torch.save(data, f))
 
 
-def save(path, trainer) -> None:
-    write(path, capture(trainer))
-
-
 def load(path) -> dict:
     return torch.load(path, map_location="cpu", weights_only=False)
 
