@@ -1,4 +1,4 @@
-"""AVD-like 3D benchmark (issue 4, paper §4.2 and supplementary C, Table 2).
+"""AVD-like 3D benchmark (paper §4.2 and supplementary C, Table 2).
 
     .venv/bin/python benchmarks/avd_3d.py                        # 10 trajectories x 16 frames
     .venv/bin/python benchmarks/avd_3d.py --trajectories 2 --frames 8 --set optim.epochs=20   # smoke run

@@ -1,4 +1,4 @@
-"""Freiburg SLAM benchmark logs (issue 5): relations errors of DeepMapping and baselines.
+"""Freiburg SLAM benchmark logs: relations errors of DeepMapping and baselines.
 
     .venv/bin/python benchmarks/carmen.py                                  # intel and fr079, full
     .venv/bin/python benchmarks/carmen.py --logs fr079 --methods odometry,icp --keyframes every:50   # smoke

@@ -1,4 +1,4 @@
-"""Real 3D data checks (issue 4): the Stanford Bunny and the 3DTK sample scans.
+"""Real 3D data checks: the Stanford Bunny and the 3DTK sample scans.
 
     .venv/bin/python benchmarks/real_3d.py                 # both (~15 min on 2 cores)
     .venv/bin/python benchmarks/real_3d.py --max-points 500 --set optim.epochs=5   # smoke run

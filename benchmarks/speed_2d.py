@@ -1,4 +1,4 @@
-"""Speed benchmark (issue 3): time to accuracy on simulated 256-scan 2D trajectories.
+"""Speed benchmark: time to accuracy on simulated 256-scan 2D trajectories.
 
     .venv/bin/python benchmarks/speed_2d.py                      # 5 trajectories, ~25 min on 2 cores
     .venv/bin/python benchmarks/speed_2d.py --trajectories 1 --paper-budget 30 --no-scaling   # a quick look

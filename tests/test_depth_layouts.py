@@ -1,4 +1,4 @@
-"""Depth-image layouts of real data (issue 17): 7-Scenes / 3DMatch and TUM RGB-D, the frame and pixel
+"""Depth-image layouts of real data: 7-Scenes / 3DMatch and TUM RGB-D, the frame and pixel
 options they share with the rgbd layout, and their errors. Tiny synthetic folders written here with
 PIL, the library the readers use."""
 

@@ -1,4 +1,4 @@
-"""Faults survived, nothing lost (issue 18, item 5), with real processes where the fault is a
+"""Faults survived, nothing lost, with real processes where the fault is a
 process's fate: kill -9 then --resume, a full disk or read-only folder while writing results,
 two commands on one folder, a sweep worker killed mid-run, a loss that turns NaN/inf.
 

@@ -1,4 +1,4 @@
-"""Fuzzed settings (issue 18, item 4): config files (``load_config(path=...)``), dotted overrides
+"""Fuzzed settings: config files (``load_config(path=...)``), dotted overrides
 (``overrides=``) and ``--set`` values give a sane Config or one ConfigError line (naming the file,
 or the setting); nonsense settings are refused before anything runs, on the command line too.
 

@@ -1,4 +1,4 @@
-"""Fuzzed readers (issue 18, item 4): every reader of ``deepmapping.io`` returns valid data or
+"""Fuzzed readers: every reader of ``deepmapping.io`` returns valid data or
 raises InputError naming the file, in bounded time, whatever the input.
 
 Inputs: random bytes, truncations and byte corruptions of a valid file, wrong counts and

@@ -1,4 +1,4 @@
-"""The CLI's progress bars: a finished stage's clock stops (issue 18, item 7)."""
+"""The CLI's progress bars: a finished stage's clock stops."""
 
 from __future__ import annotations
 
