@@ -60,6 +60,11 @@ def test_register_3d_writes_poses_cloud_occupancy_and_pictures(runs):
     assert "default-3d" in (folder / "config.yaml").read_text()  # 3D data gets the 3D profile
     grid = np.load(folder / "occupancy.npz")
     assert grid["grid"].ndim == 3 and 0.0 <= grid["grid"].min() <= grid["grid"].max() <= 1.0
+    run = json.loads((folder / "run.json").read_text())
+    res = run["map_resolution"]  # the M-Net's encoding as built, from the data's point spacing
+    assert res["point_spacing"] > 0 and res["fourier_max_freq"] >= 32 and res["finest_period"] > 0
+    assert run["occupancy_grid"]["cells"] == list(grid["grid"].shape)
+    assert 64 <= max(grid["grid"].shape) <= 130  # the export follows the map (64-128 cells a side)
 
 
 def test_multiway_and_lidar_runs_evaluate(runs):

@@ -259,6 +259,11 @@ def test_mnet_warmup_holds_poses_then_releases_them(small_scans):
     np.testing.assert_allclose(held.poses, held.init_poses, atol=1e-6)
     moved = register(small_scans, _quick_cfg(**{"optim.mnet_warmup_epochs": 1, "optim.epochs": 3}))
     assert not np.allclose(moved.poses, moved.init_poses, atol=1e-6)
+    # counted in steps too (a run over few scans has few steps an epoch): the longer one holds
+    by_steps = register(small_scans, _quick_cfg(**{"optim.mnet_warmup_steps": 10_000, "optim.epochs": 3}))
+    np.testing.assert_allclose(by_steps.poses, by_steps.init_poses, atol=1e-6)
+    one_step = register(small_scans, _quick_cfg(**{"optim.mnet_warmup_steps": 1, "optim.epochs": 3}))
+    assert not np.allclose(one_step.poses, one_step.init_poses, atol=1e-6)
 
 
 def test_paper_profile_still_runs_end_to_end(indoor_map):

@@ -33,6 +33,8 @@ class Result:
     localize: Callable[..., np.ndarray] | None = None
     # cold-start curriculum: where it placed each scan (the poses the L-Net's corrections compose with)
     placements: np.ndarray | None = None
+    # the M-Net's encoding as built (data units): point spacing, finest period, frequencies, bands
+    map_resolution: dict | None = None
 
 
 def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | Path | None = None,
@@ -205,7 +207,9 @@ def _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_place=N
     frame = Frame.from_scans(scans.points, scans.valid, init)
     pts = torch.as_tensor(scans.points / frame.scale, dtype=torch.float32, device=device)
     valid = torch.as_tensor(scans.valid, device=device)
-    model = DeepMappingModel(cfg, pts, torch.as_tensor(frame.to_norm(init), dtype=torch.float32, device=device),
+    mnet_cfg, map_resolution = resolve_map(scans, cfg, frame)
+    model = DeepMappingModel(cfg.model_copy(update={"mnet": mnet_cfg}), pts,
+                             torch.as_tensor(frame.to_norm(init), dtype=torch.float32, device=device),
                              valid=valid, grid_shape=scans.grid_shape, pose_dof=scans.pose_dof)
     model.to(device)
     if cfg.method == "direct":
@@ -221,12 +225,13 @@ def _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_place=N
         return ate(frame.from_norm(poses_norm), scans.gt_poses) * scans.unit_scale
 
     trainer = Trainer(cfg, model, valid, scans.ordered, evaluate)
-    trainer.extra = {"init_poses_input": init.tolist(), "frame": frame.to_dict()}
+    trainer.extra = {"init_poses_input": init.tolist(), "frame": frame.to_dict(), "map_resolution": map_resolution}
     if saved is not None:
         ckpt.restore(trainer, saved)
     trainer.run(checkpoint, on_log, on_epoch, on_place)
     poses = frame.from_norm(model.all_poses().cpu().numpy().astype(np.float64))
     result = _finish(scans, cfg, poses, t0, init=init)
+    result.map_resolution = map_resolution
     result.history = dict(trainer.state.history, rollbacks=trainer.state.rollbacks)
     if trainer.use_curriculum:
         result.placements = frame.from_norm(model.init_poses.cpu().numpy().astype(np.float64))
@@ -234,6 +239,15 @@ def _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_place=N
     if model.direct_poses is None:
         result.localize = _localize_fn(model, frame, device)
     return result
+
+
+def resolve_map(scans: ScanSet, cfg: Config, frame):
+    """The M-Net settings the model is built with (a resolution that follows the data when
+    ``mnet.fourier_period_spacings`` > 0, solver.resolution) and what run.json reports of them."""
+    from deepmapping.solver import resolution
+
+    spacing = resolution.point_spacing(scans.points, scans.valid) if cfg.mnet.fourier_period_spacings > 0 else 0.0
+    return resolution.resolve(cfg.mnet, spacing, frame.scale)
 
 
 def _occupancy_fn(model, frame, device):

@@ -51,6 +51,9 @@ class LNetConfig(_Section):
     feature_norm: bool = False
     feature_std_floor: float = Field(0.0, ge=0)  # Standardize: std >= this x the layer's mean std (0 = off)
     lr_factor: float = Field(1.0, ge=0)  # L-Net learning rate = optim.lr * lr_factor (direct poses use optim.lr)
+    # the PointNet L-Net's (unorganized clouds) instead, when set: few clouds standardized over few
+    # samples make its corrections jumpy at the depth-image CNN's rate (3DTK, docs/3d.md)
+    pointnet_lr_factor: float | None = Field(None, ge=0)
     # Also feed the L-Net its scan's warm-start pose (x, y, cos, sin with this many Fourier
     # frequencies; 0 = the scan only, as in the paper).
     pose_input_freqs: int = Field(0, ge=0)
@@ -65,6 +68,11 @@ class MNetConfig(_Section):
     hidden: list[PosInt] = [64, 512, 512, 256, 128]
     fourier_features: int = Field(0, ge=0)  # number of log-spaced frequencies per axis (kind="fourier")
     fourier_max_freq: float = Field(32.0, gt=0)  # highest frequency: period 2/f on the map normalized to [-1, 1]
+    # > 0: a map that follows the data (3D). The finest period becomes at most this many point
+    # spacings (the median nearest-neighbour distance within a scan): the highest frequency is
+    # raised above fourier_max_freq where the map is large for its sampling (an outdoor scan), and
+    # bands are added at the same log spacing; solver.resolution computes it, run.json reports it
+    fourier_period_spacings: float = Field(0.0, ge=0)
     grid_levels: int = Field(6, ge=1)  # kind="grid": multi-resolution feature grids
     grid_features: int = Field(4, ge=1)
     grid_base: int = Field(16, ge=1)  # coarsest resolution (cells across the map)
@@ -91,6 +99,8 @@ class OptimConfig(_Section):
     epochs: int = Field(3000, ge=0)
     max_time_s: NonNegFloat | None = None  # stop after this much wall time (None = no limit)
     mnet_warmup_epochs: int = Field(0, ge=0)  # first epochs train the M-Net only (poses held at the warm start)
+    # ... and at least this many first optimizer steps: a run over few scans has few steps an epoch
+    mnet_warmup_steps: int = Field(0, ge=0)
     lr_final_factor: float = Field(1.0, ge=0)  # cosine decay to lr * factor (1.0 = constant lr, as the paper)
     eval_every: int = Field(50, ge=1)  # evaluate ATE (when gt known) and log every N epochs
     early_stop_tol: NonNegFloat | None = None  # stop when poses move less than this (units) over a log interval
@@ -274,10 +284,11 @@ PROFILES: dict[str, dict] = {
     "default-3d": {
         "lnet": {"conv_channels": [32, 64, 128], "stride": 2, "fc_channels": [256, 128], "zero_init_output": True,
                  "feature_norm": True, "feature_std_floor": 0.1, "lr_factor": 0.3, "pose_input_freqs": 8,
-                 "point_channels": [64, 128, 256]},
-        "mnet": {"kind": "fourier", "hidden": [128, 128, 128], "fourier_features": 16, "coarse_to_fine": 0.5},
+                 "point_channels": [64, 128, 256], "pointnet_lr_factor": 0.1},
+        "mnet": {"kind": "fourier", "hidden": [128, 128, 128], "fourier_features": 16, "coarse_to_fine": 0.5,
+                 "fourier_period_spacings": 8.0},
         "loss": {"free_samples": 8, "free_sampling": "stratified", "beams_per_scan": 256, "chamfer_weight": 0.1},
-        "optim": {"batch_size": 4, "epochs": 200, "lr_final_factor": 0.05, "eval_every": 10},
+        "optim": {"batch_size": 4, "epochs": 200, "lr_final_factor": 0.05, "eval_every": 10, "mnet_warmup_steps": 100},
         "warm_start": {"method": "auto"},
     },
 }

@@ -48,7 +48,8 @@ class DeepMappingModel(nn.Module):
         self.register_buffer("pivot", centroids(scans, valid) if use_pivot else None)
         self.direct_poses: nn.Parameter | None = None
         self.mnet_lr_factor = cfg.mnet.lr_factor
-        self.lnet_lr_factor = cfg.lnet.lr_factor
+        use_point_rate = self.lnet.kind == "pointnet" and cfg.lnet.pointnet_lr_factor is not None
+        self.lnet_lr_factor = cfg.lnet.pointnet_lr_factor if use_point_rate else cfg.lnet.lr_factor
         if cfg.lnet.feature_norm:
             self.calibrate_lnet()
 

@@ -35,6 +35,13 @@ class Standardize(nn.Module):
         return (x - self.mean) / self.std
 
 
+def extractor_kind(cfg: LNetConfig, in_dim: int, grid_shape: tuple[int, int] | None) -> str:
+    """"cnn" or "pointnet": ``lnet.extractor``, where "auto" is a CNN for organized scans."""
+    if cfg.extractor != "auto":
+        return cfg.extractor
+    return "cnn" if (in_dim == 2 or grid_shape is not None) else "pointnet"
+
+
 def feature_extractor(cfg: LNetConfig, in_dim: int, grid_shape: tuple[int, int] | None) -> tuple[nn.Module, int]:
     """The L-Net's latent feature module (§3.3): a CNN over organized scans, PointNet otherwise.
 
@@ -43,9 +50,7 @@ def feature_extractor(cfg: LNetConfig, in_dim: int, grid_shape: tuple[int, int] 
     MLP (PointNet without its input/feature transforms). Each layer is followed by a ReLU;
     the global max-pool comes after (in LNet).
     """
-    kind = cfg.extractor
-    if kind == "auto":
-        kind = "cnn" if (in_dim == 2 or grid_shape is not None) else "pointnet"
+    kind = extractor_kind(cfg, in_dim, grid_shape)
     layers: list[nn.Module] = []
     prev = in_dim
     if kind == "pointnet":
@@ -77,6 +82,7 @@ class LNet(nn.Module):
                  grid_shape: tuple[int, int] | None = None):
         super().__init__()
         self.grid_shape = grid_shape
+        self.kind = extractor_kind(cfg, in_dim, grid_shape)
         self.features, prev = feature_extractor(cfg, in_dim, grid_shape)
         self.pose_encoding: FourierEncoding | None = None
         if cfg.pose_input_freqs:

@@ -85,10 +85,18 @@ class Trainer:
         frac = min(max(step - self.state.curriculum_steps, 0) / max(self.total_steps, 1), 1.0)
         return self.cfg.optim.lr * (lo + (1 - lo) * 0.5 * (1 + math.cos(math.pi * frac)))
 
+    def mnet_warmup_now(self) -> bool:
+        """Whether this step trains the M-Net only, the poses held (``optim.mnet_warmup_epochs``
+        epochs and ``optim.mnet_warmup_steps`` steps of ordinary training, whichever is longer)."""
+        o = self.cfg.optim
+        if self.use_curriculum_now():  # the curriculum's placements always move with the M-Net
+            return False
+        return self.state.epoch < o.mnet_warmup_epochs or self.state.step - self.state.curriculum_steps < o.mnet_warmup_steps
+
     def loss(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         cfg = self.cfg.loss
         scans, valid = self.model.scans[idx], self.valid[idx]
-        if self.state.epoch < self.cfg.optim.mnet_warmup_epochs:
+        if self.mnet_warmup_now():
             with torch.no_grad():  # M-Net warm-up: poses held, no L-Net backward
                 poses = self.model.poses(idx)
         else:
@@ -111,7 +119,7 @@ class Trainer:
     def step(self, idx: np.ndarray, lr: float | None = None) -> tuple[float, float, float]:
         """One optimizer step on the scans ``idx``; ``lr``: a constant rate instead of the schedule."""
         lr = (self.lr_at(self.state.step) if lr is None else lr) * self.state.lr_scale
-        warmup = self.state.epoch < self.cfg.optim.mnet_warmup_epochs and not self.use_curriculum_now()
+        warmup = self.mnet_warmup_now()
         for g in self.opt.param_groups:
             g["lr"] = 0.0 if (warmup and g["name"] == "poses") else lr * g["lr_factor"]
         total, bce, ch = self.loss(torch.as_tensor(idx, device=self.device))

@@ -12,9 +12,6 @@ from deepmapping.data import ScanSet
 from deepmapping.io.atomic import make_folder
 from deepmapping.tools.run_dir import _write_history_csv, write_config, write_json
 
-GRID_CELLS = 64  # default occupancy export: the map's longest side in this many voxels
-
-
 def write_poses_3d(out: Path, poses: np.ndarray) -> None:
     from deepmapping.io.poses3d import write_kitti_poses, write_poses_npy_3d, write_tum_poses
 
@@ -23,18 +20,22 @@ def write_poses_3d(out: Path, poses: np.ndarray) -> None:
     write_tum_poses(out / "poses_tum.txt", poses)
 
 
-def write_occupancy(out: Path, scans: ScanSet, result: Result, voxel: float | None) -> None:
-    """The M-Net's map as a voxel grid of occupancy probabilities and its 0.5 level set as a mesh."""
+def write_occupancy(out: Path, scans: ScanSet, result: Result, voxel: float | None) -> dict:
+    """The M-Net's map as a voxel grid of occupancy probabilities and its 0.5 level set as a mesh;
+    returns the grid's voxel and shape. Default voxel: half the M-Net's finest period (64-128
+    cells along the longest side, solver.resolution.export_voxel)."""
     from deepmapping.core import se3
+    from deepmapping.solver.resolution import export_voxel
     from deepmapping.tools.export3d import occupancy_grid, occupancy_mesh, write_mesh_ply, write_occupancy_grid
 
     glob = se3.transform_points(result.poses, scans.points)[scans.valid]
     lo, hi = glob.min(0), glob.max(0)
-    voxel = voxel or float((hi - lo).max() / GRID_CELLS)
+    voxel = voxel or export_voxel(float((hi - lo).max()), (result.map_resolution or {}).get("finest_period"))
     grid, origin, voxel = occupancy_grid(result.occupancy, lo, hi, voxel)
     write_occupancy_grid(out / "occupancy.npz", grid, origin, voxel)
     verts, tris = occupancy_mesh(grid, origin, voxel, level=0.5)
     write_mesh_ply(out / "occupancy_mesh.ply", verts, tris)
+    return {"voxel": float(voxel), "cells": list(grid.shape), "megabytes": grid.size * 4 / 2**20}
 
 
 def write_run_3d(out: Path, scans: ScanSet, result: Result, data_info: dict, plots: bool = True) -> list[Path]:
@@ -43,10 +44,6 @@ def write_run_3d(out: Path, scans: ScanSet, result: Result, data_info: dict, plo
     make_folder(out)
     write_poses_3d(out, result.poses)
     write_config(out, result.config)
-    write_json(out / "run.json", {"method": result.method, "runtime_s": result.runtime_s,
-                                  "num_scans": scans.num_scans, "unit": scans.unit,
-                                  "unit_scale": scans.unit_scale, **data_info,
-                                  "rollbacks": result.history.get("rollbacks", [])})
     write_registered_cloud(out / "map.ply", scans.points, scans.valid, result.poses)
     write_registered_cloud(out / "map.pcd", scans.points, scans.valid, result.poses)
     _write_3dtk_frames(out, scans, result.poses)
@@ -54,8 +51,12 @@ def write_run_3d(out: Path, scans: ScanSet, result: Result, data_info: dict, plo
         write_json(out / "metrics.json", result.metrics)
     if result.history.get("iteration"):
         _write_history_csv(out / "history.csv", result.history)
-    if result.occupancy is not None:
-        write_occupancy(out, scans, result, result.config.eval.voxel_size)
+    grid = write_occupancy(out, scans, result, result.config.eval.voxel_size) if result.occupancy is not None else None
+    write_json(out / "run.json", {"method": result.method, "runtime_s": result.runtime_s,
+                                  "num_scans": scans.num_scans, "unit": scans.unit,
+                                  "unit_scale": scans.unit_scale, **data_info,
+                                  "rollbacks": result.history.get("rollbacks", []),
+                                  "map_resolution": result.map_resolution, "occupancy_grid": grid})
     if plots:
         _write_pictures(out, scans, result)
     return sorted(p for p in out.iterdir() if p.is_file() and not p.name.startswith("."))
