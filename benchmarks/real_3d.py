@@ -33,7 +33,7 @@ METHODS = {  # name -> config overrides on the default-3d profile
     "deepmapping": {},
     "direct": {"method": "direct"},
 }
-BUNNY_SETTINGS = {"lnet.pivot": "centroid", "lnet.lr_factor": 0.02, "loss.near_hit_samples": 8, "loss.near_hit_distance": 0.2}
+BUNNY_SETTINGS = {"lnet.pivot": "centroid", "lnet.pointnet_lr_factor": 0.02, "loss.near_hit_samples": 8, "loss.near_hit_distance": 0.2}
 
 
 def coarse_start(scans, deg: float = 10.0, mm: float = 10.0, seed: int = 0) -> np.ndarray:
