@@ -228,3 +228,28 @@ def test_default_scales_do_not_go_below_the_point_spacing(scans):
     assert gap > diag / 100 and default_scales(sparse).voxel == pytest.approx(gap)
     assert default_scales(sparse, voxel_size=0).normals_radius == pytest.approx(2 * gap)
     assert default_scales(sparse, voxel_size=0.01).voxel == 0.01  # explicit values win
+
+
+def test_kiss_icp_odometry_recovers_ground_truth_and_anchors_pose_0(scans):
+    from deepmapping.core.kiss_odometry import kiss_config, kiss_icp_poses
+
+    clouds, gt = scans
+    cfg = kiss_config(clouds)
+    assert cfg.data.deskew is False and cfg.mapping.voxel_size == pytest.approx(cfg.data.max_range / 100)
+    steps = []
+    est = kiss_icp_poses(clouds, progress=lambda i, n: steps.append((i, n)))
+    np.testing.assert_allclose(est[0], np.eye(4), atol=1e-9)
+    assert steps[-1] == (K - 1, K - 1)
+    _assert_close_relative(est, gt, max_t=0.02, max_deg=1.0)
+    anchored = kiss_icp_poses(clouds, init=gt)
+    np.testing.assert_allclose(anchored[0], gt[0], atol=1e-9)
+    assert ate_3d(anchored, gt) < 0.02
+
+
+def test_kiss_icp_bad_scan_names_its_index(scans):
+    from deepmapping.core.kiss_odometry import kiss_icp_poses
+
+    clouds = [c.copy() for c in scans[0]]
+    clouds[2] = clouds[2][:3]  # too few points to register
+    with pytest.raises(InputError, match="scan 2"):
+        kiss_icp_poses(clouds)

@@ -176,3 +176,23 @@ def test_auto_warm_start_is_planar_icp_for_depth_images_and_icp_for_clouds(lidar
     from deepmapping.core.metrics3d import ate_3d
 
     assert ate_3d(clouds, lidar_problem.gt_poses) < 0.05
+
+
+def test_kiss_icp_warm_start_on_a_slow_lidar_sequence(tmp_path):
+    """--warm-start kiss-icp: DeepMapping starts from KISS-ICP's odometry (a robot at 1 m/s, 10 Hz)."""
+    from deepmapping.api import register
+    from deepmapping.core.kiss_odometry import kiss_icp_poses
+    from deepmapping.core.metrics3d import ate_3d
+    from deepmapping.io.lidar import load_lidar
+    from deepmapping.sim.lidar import write_lidar_dataset
+
+    write_lidar_dataset(tmp_path, num_trajectories=1, frames=12, seed=3, step_m=0.1)
+    scans = load_lidar(tmp_path / "traj_000", max_points=2000)
+    kiss = kiss_icp_poses([p[v] for p, v in zip(scans.points, scans.valid)])
+    assert ate_3d(kiss, scans.gt_poses) < 0.05  # 1.1 m of travel; no registration: see below
+    assert ate_3d(np.tile(np.eye(4), (12, 1, 1)), scans.gt_poses) > 0.2
+    res = register(scans, load_config("default-3d", overrides={"warm_start.method": "kiss-icp", "optim.epochs": 1,
+                                                               "threads": 1}))
+    np.testing.assert_allclose(res.init_poses, kiss, atol=1e-9)
+    baseline = register(scans, load_config("default-3d", overrides={"method": "kiss-icp"}))
+    np.testing.assert_allclose(baseline.poses, kiss, atol=1e-9)

@@ -43,7 +43,7 @@ def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | 
              on_icp_progress: Callable[[int, int], None] | None = None,
              on_place: Callable[[int, int], None] | None = None) -> Result:
     """Register the scans with ``config.method`` (deepmapping, direct, icp-point, icp-plane,
-    icp-planar, multiway, loop-closure).
+    icp-planar, multiway, loop-closure, kiss-icp).
 
     With no config: the "default" profile for 2D scans, "default-3d" for 3D ones. A cold start
     (``warm_start.method = "none"``) of an ordered 2D sequence places the scans by the
@@ -65,13 +65,13 @@ def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | 
     return _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_place)
 
 
-BASELINES = ("icp-point", "icp-plane", "icp-planar", "multiway", "loop-closure")
+BASELINES = ("icp-point", "icp-plane", "icp-planar", "multiway", "loop-closure", "kiss-icp")
 
 
 def baseline_poses(scans: ScanSet, cfg: Config, method: str, init=None, progress=None) -> np.ndarray:
     """Classic registration: incremental ICP (2D: ours; 3D: Open3D) or multiway registration (3D)."""
     if not scans.is_3d:
-        if method in ("multiway", "icp-planar"):
+        if method in ("multiway", "icp-planar", "kiss-icp"):
             raise ConfigError(f"{method} is implemented for 3D scans only")
         if method == "loop-closure":
             return loop_closure_poses(scans, cfg, init, progress)
@@ -87,6 +87,11 @@ def baseline_poses(scans: ScanSet, cfg: Config, method: str, init=None, progress
 
         return incremental_icp_planar(clouds, init=init, yaw_hypotheses_deg=cfg.icp.yaw_hypotheses_deg,
                                       progress=progress, **opts)
+    if method == "kiss-icp":
+        from deepmapping.core.kiss_odometry import kiss_icp_poses
+
+        return kiss_icp_poses(clouds, init=init, voxel_size=cfg.icp.voxel_size, threads=cfg.threads or 1,
+                              progress=progress)
     if method == "multiway":
         from deepmapping.core.multiway import multiway_registration
 

@@ -15,8 +15,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from deepmapping.errors import ConfigError
 
-Method = Literal["deepmapping", "direct", "icp-point", "icp-plane", "icp-planar", "multiway", "loop-closure"]
-WarmStart = Literal["none", "icp-point", "icp-plane", "icp-planar", "multiway", "loop-closure", "file", "auto"]
+Method = Literal["deepmapping", "direct", "icp-point", "icp-plane", "icp-planar", "multiway", "loop-closure", "kiss-icp"]
+WarmStart = Literal["none", "icp-point", "icp-plane", "icp-planar", "multiway", "loop-closure", "kiss-icp", "file", "auto"]
 
 
 class _Section(BaseModel):
@@ -207,7 +207,7 @@ class EvalConfig(_Section):
     # for 2D (supplementary B), 450 mm for AVD-like depth images with planar poses (supplementary
     # C), 2 % of the typical range for other 3D data (core.metrics3d.success_threshold_3d)
     success_threshold: PosFloat | None = None
-    voxel_size: PosFloat | None = None  # 3D occupancy export (points' units); None = 1/64 of the map's extent
+    voxel_size: PosFloat | None = None  # 3D occupancy export (points' units); None = half the M-Net's finest period (64-128 cells a side)
 
 
 class Config(_Section):

@@ -14,7 +14,7 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
                        "L-Net and an M-Net.")
 
 METHODS = ("deepmapping | direct | icp-point | icp-plane | loop-closure (2D logs) | icp-planar (3D, planar poses) "
-           "| multiway (3D)")
+           "| multiway (3D) | kiss-icp (3D sequences, KISS-ICP odometry)")
 
 
 @app.command(epilog="Examples:\n\n  deepmapping simulate data/traj0 --poses 256 --seed 3\n\n"
@@ -29,6 +29,8 @@ def simulate(
     trajectories: int = typer.Option(10, help="3D: number of trajectories."),
     frames: int = typer.Option(16, help="3D: frames per trajectory (AVD: 8 or 16)."),
     lidar_beams: int = typer.Option(16, help="lidar: 16, 32 or 64 beams."),
+    lidar_step: float = typer.Option(0.4, help="lidar: metres between frames (0.1: a robot at 1 m/s and 10 Hz, "
+                                     "turns of about 10 deg a frame; 0.4: turns of up to 50 deg)."),
     poses: int = typer.Option(256, help="Number of poses (scans) on the trajectory."),
     beams: int = typer.Option(256, help="Beams per 360° scan."),
     seed: int = typer.Option(0, help="Trajectory seed."),
@@ -43,7 +45,7 @@ def simulate(
     """Simulate scans with ground truth: a 2D lidar in a 1024×1024 occupancy image (§4.1), or 3D
     indoor scenes seen by an AVD-like depth camera (§4.2) or a spinning LiDAR."""
     if kind in ("rgbd", "lidar"):
-        _simulate_3d(out, kind, trajectories, frames, seed, lidar_beams, noise)
+        _simulate_3d(out, kind, trajectories, frames, seed, lidar_beams, noise, lidar_step)
         return
     if kind != "2d":
         raise typer.BadParameter(f"--kind must be 2d, rgbd or lidar, got {kind!r}")
@@ -60,7 +62,8 @@ def simulate(
     typer.echo(f"wrote {poses} scans to {out} (picture: {out / 'map.png'})")
 
 
-def _simulate_3d(out: Path, kind: str, trajectories: int, frames: int, seed: int, beams: int, noise: float) -> None:
+def _simulate_3d(out: Path, kind: str, trajectories: int, frames: int, seed: int, beams: int, noise: float,
+                 lidar_step: float = 0.4) -> None:
     if kind == "rgbd":
         from deepmapping.sim.rgbd import write_rgbd_dataset
 
@@ -68,8 +71,10 @@ def _simulate_3d(out: Path, kind: str, trajectories: int, frames: int, seed: int
     else:
         from deepmapping.sim.lidar import write_lidar_dataset
 
+        if not lidar_step > 0:
+            raise typer.BadParameter(f"--lidar-step must be > 0 metres, got {lidar_step}")
         write_lidar_dataset(out, num_trajectories=trajectories, frames=frames, seed=seed, beams=beams,
-                            noise_std_m=noise)
+                            noise_std_m=noise, step_m=lidar_step)
     typer.echo(f"wrote {trajectories} {kind} trajectories of {frames} frames under {out}")
 
 
@@ -93,7 +98,8 @@ def register(
     warm_start: Optional[str] = typer.Option(None, help="auto (default: icp-plane; loop-closure for logs; icp-planar "
                                              "for AVD-like depth images with planar poses) | icp-plane | icp-point | "
                                              "loop-closure | icp-planar | "
-                                             "multiway | file (the poses the data came with) | none."),
+                                             "multiway | kiss-icp (LiDAR sequences) | file (the poses the data "
+                                             "came with) | none."),
     init: Optional[Path] = typer.Option(None, help="Initial poses file (warm start), in the scans' units."),
     gt: Optional[Path] = typer.Option(None, help="Ground-truth poses (overrides the folder's own)."),
     format: Optional[str] = typer.Option(None, "--format", help="Loader name (default: picked from the path)."),
