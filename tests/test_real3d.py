@@ -26,9 +26,10 @@ def test_bunny_check_small():
     assert start[0]["rot_deg"] < 1e-6 and start[0]["trans_mm"] < 1e-6  # bun000 is the fixed reference
     errors = {}
     for method in ("direct", "deepmapping"):
-        # 90 steps in all: no M-Net warm-up (default-3d's 100 steps would hold the poses throughout)
+        # 90 steps in all: no M-Net warm-up (default-3d holds the poses for 20 epochs and 100 steps)
         cfg = load_config("default-3d", overrides={"method": method, "warm_start.method": "file", "threads": 1,
-                                                   "optim.epochs": 30, "optim.mnet_warmup_steps": 0, **BUNNY_SETTINGS})
+                                                   "optim.epochs": 30, "optim.mnet_warmup_epochs": 0,
+                                                   "optim.mnet_warmup_steps": 0, **BUNNY_SETTINGS})
         poses = register(scans, cfg).poses
         errors[method] = bunny_pose_errors(poses, scans.gt_poses, scans.names, centroids)
         assert len(errors[method]) == 10 and all(np.isfinite([e["rot_deg"], e["trans_mm"]]).all()

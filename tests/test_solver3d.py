@@ -86,9 +86,10 @@ def test_six_dof_registration_reduces_position_and_rotation_errors(lidar_problem
     from deepmapping.core.metrics3d import ate_3d, rotation_errors_deg
 
     s = lidar_problem
-    # 50 steps in all: no M-Net warm-up (default-3d's 100 steps would hold the poses throughout)
+    # 50 steps in all: no M-Net warm-up (default-3d holds the poses for 20 epochs and 100 steps)
     cfg = load_config("default-3d", overrides={"method": method, "warm_start.method": "file", "threads": 1,
-                                               "optim.epochs": 50, "optim.mnet_warmup_steps": 0})
+                                               "optim.epochs": 50, "optim.mnet_warmup_epochs": 0,
+                                               "optim.mnet_warmup_steps": 0})
     result = register(s, cfg)
     ate0, rot0 = ate_3d(s.init_poses, s.gt_poses), rotation_errors_deg(s.init_poses, s.gt_poses).mean()
     assert result.poses.shape == (4, 4, 4)

@@ -288,7 +288,8 @@ PROFILES: dict[str, dict] = {
         "mnet": {"kind": "fourier", "hidden": [128, 128, 128], "fourier_features": 16, "coarse_to_fine": 0.5,
                  "fourier_period_spacings": 8.0},
         "loss": {"free_samples": 8, "free_sampling": "stratified", "beams_per_scan": 256, "chamfer_weight": 0.1},
-        "optim": {"batch_size": 4, "epochs": 200, "lr_final_factor": 0.05, "eval_every": 10, "mnet_warmup_steps": 100},
+        "optim": {"batch_size": 4, "epochs": 200, "lr_final_factor": 0.05, "eval_every": 10, "mnet_warmup_epochs": 20,
+                  "mnet_warmup_steps": 100},
         "warm_start": {"method": "auto"},
     },
 }
