@@ -249,16 +249,19 @@ def test_truncated_chamfer_caps_what_the_other_view_does_not_see():
     assert float(truncated_chamfer(x, ones, x + 10.0, ones, 0.1)) == pytest.approx(2.0)
 
 
-def test_curriculum_on_planar_3d_is_opt_in_and_refused_for_6dof():
+def test_curriculum_runs_on_planar_3d_cold_starts_and_is_refused_for_6dof():
     from deepmapping.api import register
     from deepmapping.experiments.exp_avd import avd_trajectory
 
     scans = avd_trajectory(0, frames=6, width=16, height=12)
-    cfg = load_config("default-3d", overrides={"warm_start.method": "none", "optim.epochs": 2, "threads": 1})
-    assert register(scans, cfg).placements is None  # auto: not on depth images
-    res = register(scans, cfg.with_overrides({"curriculum.enabled": "on", "curriculum.steps": 3}))
+    cfg = load_config("default-3d", overrides={"warm_start.method": "none", "optim.epochs": 2, "threads": 1,
+                                               "curriculum.steps": 3})
+    assert cfg.curriculum.select_truncate > 0 and cfg.curriculum.wide_hypotheses == 0  # the depth-image ranking
+    res = register(scans, cfg)  # auto: on for a cold start of planar (AVD-like) depth images
     assert res.placements is not None and np.allclose(res.placements[:, 1, 3], 0.0, atol=1e-4)
     assert np.isfinite(res.metrics["ate"])
+    assert register(scans, cfg.with_overrides({"curriculum.enabled": "off"})).placements is None
     six = scans.__class__(**{**scans.__dict__, "pose_dof": 6})
+    assert register(six, cfg).placements is None  # auto: 6-DoF poses start from the identity
     with pytest.raises(ConfigError, match="6-DoF"):
         register(six, cfg.with_overrides({"curriculum.enabled": "on"}))

@@ -291,6 +291,11 @@ PROFILES: dict[str, dict] = {
         "optim": {"batch_size": 4, "epochs": 200, "lr_final_factor": 0.05, "eval_every": 10, "mnet_warmup_epochs": 20,
                   "mnet_warmup_steps": 100},
         "warm_start": {"method": "auto"},
+        # cold start of planar (AVD-like) depth images: rank the hypotheses by the truncated
+        # Chamfer distance (views overlap in part) and search headings only: a shift along a wall
+        # is not seen in one view, and the untruncated Chamfer term prefers no motion and no turn
+        # (docs/method.md, "Cold start on depth images")
+        "curriculum": {"select_truncate": 0.05, "max_shift": 0.03, "wide_hypotheses": 0},
     },
 }
 

@@ -30,10 +30,10 @@ def supported(model) -> bool:
 
 def enabled(cfg, model, ordered: bool) -> bool:
     """Whether this run places its scans by the curriculum first (``curriculum.enabled``)."""
-    # "auto": 2D only; on planar 3D poses (AVD-like) it is opt-in ("on"), not yet better than the
-    # identity there (docs/method.md, "Cold start on depth images")
+    # "auto": every cold start of an ordered sequence the curriculum supports (2D scans, planar 3D
+    # poses); 6-DoF poses start from the identity (docs/method.md, "Cold start on depth images")
     on = cfg.curriculum.enabled == "on" or (
-        cfg.curriculum.enabled == "auto" and cfg.warm_start.method == "none" and ordered and not model.is_3d)
+        cfg.curriculum.enabled == "auto" and cfg.warm_start.method == "none" and ordered and supported(model))
     if on and not supported(model):
         raise ConfigError("curriculum: the cold-start curriculum is implemented for 2D scans and planar "
                           "(3-DoF) 3D poses only, not 6-DoF")
