@@ -32,10 +32,13 @@ def _overrides(sets: list[str]) -> dict:
     return out
 
 
-def explain_placements(gt: np.ndarray, unit: float, log: list) -> None:
+def explain_placements(gt: np.ndarray, unit: float, log: list, first_scan: np.ndarray) -> None:
     """Wrap curriculum.place_new_scan: after each placement, append (scan, error px, error deg,
     loss of the chosen placement, loss of the true one relative to the placed predecessor, then
-    eq. 4 alone and the Chamfer distance alone, each for the chosen and the true placement)."""
+    eq. 4 alone and the Chamfer distance alone, each for the chosen and the true placement).
+    Placements live in the model's normalized frame (points / frame scale); ``first_scan`` (the
+    valid points of scan 0 in the data's units) gives that scale, so the true motion is taken to
+    the same units before it is compared."""
     from deepmapping.core import se2
     from deepmapping.solver import curriculum as cur
 
@@ -47,8 +50,13 @@ def explain_placements(gt: np.ndarray, unit: float, log: list) -> None:
             return
         model, cfg = trainer.model, trainer.cfg.curriculum
         prev, chosen = cur.placement(model, j - 1), cur.placement(model, j)
-        truth = se2.compose(prev, se2.relative(gt[j - 1], gt[j]))
+        norm = model.scans[0][trainer.valid[0]].double().norm()
+        scale = float(np.linalg.norm(first_scan) / float(norm))  # data units per model unit
+        motion = se2.relative(gt[j - 1], gt[j])
+        motion[:2] /= scale
+        truth = se2.compose(prev, motion)
         err = se2.relative(truth, chosen)
+        err[:2] *= scale
         pts = cur.selection_points(model, trainer.valid, j, cfg.select_points)
         pp, pv = cur.selection_points(model, trainer.valid, j - 1, cfg.select_points)
         prev_glob = (cur.transform(cur.candidate_poses(model, prev[None]), pp[None])[0], pv)
@@ -77,7 +85,7 @@ def robustness(trajectories: list[int], stride: int, extra: dict, why: bool = Fa
             s.names[::stride]
         log: list = []
         if why:
-            explain_placements(s.gt_poses, s.unit_scale, log)
+            explain_placements(s.gt_poses, s.unit_scale, log, s.points[0][s.valid[0]].astype(np.float64))
         t0 = time.perf_counter()
         r = register(s, load_config("cold", overrides={"optim.epochs": 1, "threads": 1} | extra))
         placed.append(float(evaluate_poses(s, r.placements)["ate"]))
