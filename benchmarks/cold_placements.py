@@ -43,6 +43,7 @@ def explain_placements(gt: np.ndarray, unit: float, log: list, first_scan: np.nd
     from deepmapping.solver import curriculum as cur
 
     plain = getattr(cur.place_new_scan, "plain", cur.place_new_scan)
+    scale = {}  # data units per model unit, found at the first placement
 
     def place(trainer, j):
         plain(trainer, j)
@@ -50,13 +51,13 @@ def explain_placements(gt: np.ndarray, unit: float, log: list, first_scan: np.nd
             return
         model, cfg = trainer.model, trainer.cfg.curriculum
         prev, chosen = cur.placement(model, j - 1), cur.placement(model, j)
-        norm = model.scans[0][trainer.valid[0]].double().norm()
-        scale = float(np.linalg.norm(first_scan) / float(norm))  # data units per model unit
+        if not scale:
+            scale["s"] = float(np.linalg.norm(first_scan) / float(model.scans[0][trainer.valid[0]].double().norm()))
         motion = se2.relative(gt[j - 1], gt[j])
-        motion[:2] /= scale
+        motion[:2] /= scale["s"]
         truth = se2.compose(prev, motion)
         err = se2.relative(truth, chosen)
-        err[:2] *= scale
+        err[:2] *= scale["s"]
         pts = cur.selection_points(model, trainer.valid, j, cfg.select_points)
         pp, pv = cur.selection_points(model, trainer.valid, j - 1, cfg.select_points)
         prev_glob = (cur.transform(cur.candidate_poses(model, prev[None]), pp[None])[0], pv)

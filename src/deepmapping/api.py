@@ -46,7 +46,7 @@ def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | 
     icp-planar, multiway, loop-closure, kiss-icp).
 
     With no config: the "default" profile for 2D scans, "default-3d" for 3D ones. A cold start
-    (``warm_start.method = "none"``) of an ordered 2D sequence places the scans by the
+    (``warm_start.method = "none"``) of an ordered 2D or planar-3D sequence places the scans by the
     curriculum first (``config.curriculum``; ``on_place(placed, total)`` reports its progress).
     """
     scans.validate()

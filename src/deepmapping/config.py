@@ -15,8 +15,10 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from deepmapping.errors import ConfigError
 
-Method = Literal["deepmapping", "direct", "icp-point", "icp-plane", "icp-planar", "multiway", "loop-closure", "kiss-icp"]
-WarmStart = Literal["none", "icp-point", "icp-plane", "icp-planar", "multiway", "loop-closure", "kiss-icp", "file", "auto"]
+Method = Literal["deepmapping", "direct", "icp-point", "icp-plane", "icp-planar", "multiway", "loop-closure",
+                 "kiss-icp"]
+WarmStart = Literal["none", "icp-point", "icp-plane", "icp-planar", "multiway", "loop-closure", "kiss-icp", "file",
+                    "auto"]
 
 
 class _Section(BaseModel):
@@ -120,7 +122,8 @@ class CurriculumConfig(_Section):
     correspondence search beyond the Chamfer term's nearest neighbours.
     """
 
-    # "auto": on for a cold start (warm_start none) of an ordered 2D sequence in the fast profiles
+    # "auto": on for a cold start (warm_start none) of an ordered sequence of 2D scans or planar
+    # (AVD-like) 3D poses; 6-DoF poses start from the identity
     enabled: Literal["auto", "on", "off"] = "auto"
     chunk: int = Field(4, ge=1)
     steps: int = Field(30, ge=0)
@@ -207,7 +210,8 @@ class EvalConfig(_Section):
     # for 2D (supplementary B), 450 mm for AVD-like depth images with planar poses (supplementary
     # C), 2 % of the typical range for other 3D data (core.metrics3d.success_threshold_3d)
     success_threshold: PosFloat | None = None
-    voxel_size: PosFloat | None = None  # 3D occupancy export (points' units); None = half the M-Net's finest period (64-128 cells a side)
+    # 3D occupancy export (points' units); None = half the M-Net's finest period (64-128 cells a side)
+    voxel_size: PosFloat | None = None
 
 
 class Config(_Section):

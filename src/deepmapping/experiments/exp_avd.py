@@ -3,9 +3,10 @@
 Simulated AVD-style RGB-D trajectories (``deepmapping simulate --kind rgbd``: 300 mm grid,
 12 views per position 30 deg apart, depth images), each registered by DeepMapping and by the
 direct optimization, with the Chamfer term (lambda = 0.1, "+ Ch") and without (BCE only),
-from a cold start (no initial poses: the cold-start curriculum; the paper: identity poses) and warm-started by planar ICP (our
-default), and by multiway registration (the paper's baseline). Reported: box plots of the ATE
-and the point distance (Fig. 9), the success rate (ATE < 450 mm) next to the paper's Table 2.
+from a cold start (no initial poses: the cold-start curriculum; the paper: identity poses) and
+warm-started by planar ICP (our default), and by multiway registration (the paper's baseline).
+Reported: box plots of the ATE and the point distance (Fig. 9), the success rate (ATE < 450 mm)
+next to the paper's Table 2.
 
 Each run renders its trajectory in memory from seeds (trajectory ``t`` of seed ``s`` is the
 one ``write_rgbd_dataset(num_trajectories > t, seed=s)`` writes), so workers share no disk.
@@ -150,8 +151,9 @@ def report(out: Path, results: dict[str, dict], quick: bool) -> Path:
              f"({s['width']}x{s['height']} px, 60 deg field of view; 300 mm grid, 12 views 30 deg apart). "
              f"DeepMapping and direct optimization: profile `{PROFILE}`, {epochs} epochs (the paper: 3000 epochs "
              "with full-size networks on a GPU, profile `paper-3d`), \"+ Ch\" = with the Chamfer term "
-             "(lambda = 0.1), otherwise BCE only (lambda = 0); \"cold\" = no initial poses (`warm_start.method none`: the scans are placed by the "
-             "cold-start curriculum, no classical registration; the paper started from the identity), "
+             "(lambda = 0.1), otherwise BCE only (lambda = 0); \"cold\" = no initial poses "
+             "(`warm_start.method none`: the scans are placed by the cold-start curriculum, no classical "
+             "registration; the paper started from the identity), "
              "\"warm\" = warm-started by planar ICP (our default, `warm_start.method icp-planar`). "
              "\"no registration\" leaves every pose at the origin: it shows how much of the 450 mm criterion "
              "a method must earn.")
