@@ -265,3 +265,49 @@ def test_curriculum_runs_on_planar_3d_cold_starts_and_is_refused_for_6dof():
     assert register(six, cfg).placements is None  # auto: 6-DoF poses start from the identity
     with pytest.raises(ConfigError, match="6-DoF"):
         register(six, cfg.with_overrides({"curriculum.enabled": "on"}))
+
+
+def test_the_wide_search_scores_in_blocks_as_at_once(monkeypatch):
+    """Dense scans are scored a block of hypotheses at a time (bounded memory): the same choice."""
+    from deepmapping.solver import curriculum
+
+    target = np.array([0.3, -0.2, 0.4])
+
+    def score(c):
+        return torch.as_tensor(np.abs(np.asarray(c) - target).sum(1))
+
+    picks = []
+    for block in (1 << 20, 7 * 64):
+        monkeypatch.setattr(curriculum, "WIDE_BLOCK_POINTS", block)
+        picks.append(curriculum.wide_search(score, np.zeros((2, 3)), 1000, 1.0, 1.0, 5,
+                                            np.random.default_rng(3), points=64))
+    assert np.array_equal(picks[0], picks[1])
+    assert np.abs(picks[0][0] - target).sum() < 0.2
+
+
+def test_a_chamfer_only_ranking_does_not_evaluate_the_mnet():
+    from deepmapping.solver import curriculum
+
+    class NoMNet:
+        def mnet(self, x):
+            raise AssertionError("the M-Net was evaluated")
+
+    pts = (torch.rand(30, 2), torch.ones(30, dtype=torch.bool))
+    prev = (torch.rand(40, 2), torch.ones(40, dtype=torch.bool))
+    cands = torch.tensor([[0.0, 0.0, 0.0], [0.5, 0.0, 0.3]])
+    loss = curriculum.candidate_losses(NoMNet(), pts, 1, cands, prev, 1.0, bce_weight=0.0, truncate=0.1)
+    moved = curriculum.transform(cands, pts[0][None].expand(2, -1, -1))
+    want = curriculum.truncated_chamfer(moved, pts[1][None].expand(2, -1), prev[0][None].expand(2, -1, -1),
+                                        prev[1][None].expand(2, -1), 0.1)
+    assert torch.allclose(loss, want)
+
+
+def test_the_wide_choice_needs_a_margin_and_can_keep_the_rounds_position():
+    from deepmapping.solver.curriculum import prefer_wide
+
+    best, far = np.array([1.0, 2.0, 0.1]), np.array([1.5, 2.5, 0.6])
+    assert np.array_equal(prefer_wide(best, far, torch.tensor([1.0, 0.9]), 0.0, False), far)
+    assert np.array_equal(prefer_wide(best, far, torch.tensor([1.0, 0.9]), 0.15, False), best)  # not by 15 %
+    assert np.array_equal(prefer_wide(best, far, torch.tensor([1.0, 0.8]), 0.15, False), far)
+    assert np.array_equal(prefer_wide(best, far, torch.tensor([1.0, 0.8]), 0.15, True), [1.0, 2.0, 0.6])
+    assert np.array_equal(prefer_wide(best, far, torch.tensor([1.0, float("nan")]), 0.0, False), best)

@@ -165,6 +165,12 @@ class CurriculumConfig(_Section):
     wide_points: int = Field(16, ge=8)
     wide_keep: int = Field(16, ge=1)
     wide_refine: int = Field(8, ge=1)
+    # the wide search's screen ranks by wide_bce_weight x eq. 4 + the Chamfer term (None: as
+    # select_bce_weight; 0: Chamfer only, the M-Net not evaluated: fast on dense scans); its refined
+    # best replaces the rounds' choice only if its loss is lower by more than wide_margin x theirs
+    wide_bce_weight: float | None = Field(None, ge=0)
+    wide_margin: float = Field(0.0, ge=0)
+    wide_heading_only: bool = False  # True: take only its heading, the position from the rounds
     log_every: int = Field(8, ge=1)  # log (loss, ATE) every N stages
 
 

@@ -131,7 +131,10 @@ def truncated_chamfer(x: torch.Tensor, xv: torch.Tensor, y: torch.Tensor, yv: to
     Parts of two partially overlapping views that the other does not see cost a constant instead
     of pulling the views together (depth images with a 60 deg field of view)."""
     d = torch.cdist(x, y)
-    d = d.masked_fill(~yv[:, None, :], math.inf).masked_fill(~xv[:, :, None], math.inf)
+    if not bool(yv.all()):
+        d = d.masked_fill(~yv[:, None, :], math.inf)
+    if not bool(xv.all()):
+        d = d.masked_fill(~xv[:, :, None], math.inf)
     wx, wy = xv.to(x.dtype), yv.to(x.dtype)
     ax = (d.min(2).values.clamp(max=r) * wx).sum(1) / wx.sum(1).clamp(min=1)
     ay = (d.min(1).values.clamp(max=r) * wy).sum(1) / wy.sum(1).clamp(min=1)
@@ -149,13 +152,17 @@ def candidate_losses(model, pts: tuple, j: int, candidates: torch.Tensor, prev: 
     h = candidates.shape[0]
     scan, vj = pts[0][None].expand(h, -1, -1), pts[1][None].expand(h, -1)
     occ = transform(candidates, scan)  # (H, N, D)
-    t = (torch.arange(free_samples, device=scan.device, dtype=scan.dtype) + 0.5) / free_samples
-    free = transform(candidates, scan[:, :, None, :] * t[None, None, :, None])  # (H, N, S, D)
-    nll_occ = torch.nn.functional.softplus(-model.mnet(occ))  # BCE against 1
-    nll_free = torch.nn.functional.softplus(model.mnet(free)).mean(-1)  # BCE against 0
-    w = vj.to(scan.dtype)
-    bce = bce_weight * ((nll_occ + nll_free) * w).sum(1) / w.sum(1).clamp(min=1)
-    if chamfer_weight <= 0 or prev is None:
+    use_chamfer = chamfer_weight > 0 and prev is not None
+    if bce_weight > 0 or not use_chamfer:
+        t = (torch.arange(free_samples, device=scan.device, dtype=scan.dtype) + 0.5) / free_samples
+        free = transform(candidates, scan[:, :, None, :] * t[None, None, :, None])  # (H, N, S, D)
+        nll_occ = torch.nn.functional.softplus(-model.mnet(occ))  # BCE against 1
+        nll_free = torch.nn.functional.softplus(model.mnet(free)).mean(-1)  # BCE against 0
+        w = vj.to(scan.dtype)
+        bce = bce_weight * ((nll_occ + nll_free) * w).sum(1) / w.sum(1).clamp(min=1)
+    else:  # Chamfer only: the M-Net is not evaluated (the wide search's first screen on depth images)
+        bce = torch.zeros(h, dtype=scan.dtype, device=scan.device)
+    if not use_chamfer:
         return bce
     y, yv = prev[0][None].expand(h, -1, -1), prev[1][None].expand(h, -1)
     ch = truncated_chamfer(occ, vj, y, yv, truncate) if truncate else chamfer(occ, vj, y, yv)
@@ -192,17 +199,18 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
     else:
         ch_weight, truncate = trainer.cfg.loss.chamfer_weight, None
 
-    def score(c, on=pts) -> torch.Tensor:
+    def score(c, on=pts, bce_weight=cfg.select_bce_weight) -> torch.Tensor:
         return candidate_losses(model, on, j, candidate_poses(model, c), prev_glob, ch_weight,
-                                cfg.select_bce_weight, truncate=truncate)
+                                bce_weight, truncate=truncate)
 
     turn = math.radians(cfg.max_turn_deg)
-    seeds = None
+    seeds, wide_bce = None, cfg.select_bce_weight if cfg.wide_bce_weight is None else cfg.wide_bce_weight
     if cfg.wide_hypotheses > 0 and wide_needed(model, j, cfg.wide_trigger * shift, cfg.wide_trigger * turn):
         few = selection_points(model, trainer.valid, j, cfg.wide_points)
-        seeds = wide_search(lambda c: score(c, few), centres[[0, half % h]], cfg.wide_hypotheses,
+        seeds = wide_search(lambda c: score(c, few, wide_bce), centres[[0, half % h]], cfg.wide_hypotheses,
                             cfg.wide_shift * median_range, math.radians(cfg.wide_turn_deg), cfg.wide_keep,
-                            np.random.default_rng([trainer.cfg.seed, j, 1]))  # the rounds draw as without it
+                            np.random.default_rng([trainer.cfg.seed, j, 1]),  # the rounds draw as without it
+                            points=len(few[0]))
     best, best_loss = None, math.inf
     seen_c, seen_l = [], []
     for _ in range(cfg.rounds):
@@ -224,22 +232,40 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
         best = refine(score, np.concatenate(seen_c), torch.cat(seen_l), cfg.refine_top, cfg.refine_steps,
                       cfg.refine_lr, model.scans.dtype)
     if seeds is not None:  # the wide search's seeds, refined apart, replace the rounds' best only if lower
-        far = refine(score, seeds, score(seeds), cfg.wide_refine, cfg.refine_steps, cfg.refine_lr,
+        wide_score = lambda c: score(c, pts, wide_bce)  # noqa: E731
+        far = refine(wide_score, seeds, wide_score(seeds), cfg.wide_refine, cfg.refine_steps, cfg.refine_lr,
                      model.scans.dtype)
-        both = np.stack([best, far])
-        best = both[int(torch.argmin(score(both)))]
+        best = prefer_wide(best, far, score(np.stack([best, far])), cfg.wide_margin, cfg.wide_heading_only)
     set_placement(model, range(j, model.scans.shape[0]), best)  # unplaced scans wait there too
 
 
+def prefer_wide(best: np.ndarray, far: np.ndarray, losses: torch.Tensor, margin: float,
+                heading_only: bool) -> np.ndarray:
+    """The rounds' choice ``best`` or the wide search's ``far`` (losses: theirs, in that order):
+    ``far`` only if its loss is lower by more than ``margin`` x the rounds' (a motion prior: the
+    nearer motion unless the farther one is clearly better); with ``heading_only``, ``far``'s
+    heading at ``best``'s position (depth images: the truncated Chamfer distance finds the heading
+    after a move, but after a turn in place it slides the view along what both see)."""
+    lb, lf = float(losses[0]), float(losses[1])
+    if not lf < lb - margin * abs(lb):
+        return best
+    return np.array([best[0], best[1], far[2]]) if heading_only else far
+
+
+WIDE_BLOCK_POINTS = 1 << 17  # hypotheses x points scored at once: bounded memory for dense scans
+
+
 def wide_search(score: Callable, centres: np.ndarray, h: int, radius: float, turn: float, keep: int,
-                rng: np.random.Generator) -> np.ndarray:
+                rng: np.random.Generator, points: int = 1) -> np.ndarray:
     """The ``keep`` lowest-loss of ``h`` hypotheses drawn uniformly within ``radius`` of the
     ``centres`` (a random one each) and turned uniformly within +- ``turn``: candidates from
     farther than the rounds reach, refined and compared with the rounds' choice by the caller."""
     c = centres[rng.integers(0, len(centres), h)]
     r, a = np.sqrt(rng.uniform(0, 1, h)) * radius, rng.uniform(0, 2 * np.pi, h)
     cands = se2.compose(c, np.stack([r * np.cos(a), r * np.sin(a), rng.uniform(-1, 1, h) * turn], 1))
-    return cands[torch.argsort(score(cands))[:keep].cpu().numpy()]
+    block = max(1, WIDE_BLOCK_POINTS // points)
+    losses = torch.cat([score(cands[i: i + block]) for i in range(0, h, block)])
+    return cands[torch.argsort(losses)[:keep].cpu().numpy()]
 
 
 def refine(score: Callable, cands: np.ndarray, losses: torch.Tensor, top: int, steps: int, lr: float,
