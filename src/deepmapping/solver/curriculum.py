@@ -203,11 +203,16 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
         return candidate_losses(model, on, j, candidate_poses(model, c), prev_glob, ch_weight,
                                 bce_weight, truncate=truncate)
 
+    wide_bce = cfg.select_bce_weight if cfg.wide_bce_weight is None else cfg.wide_bce_weight
+
+    def wide_score(c, on=pts) -> torch.Tensor:  # the wide search's ranking: its screen and refinement
+        return score(c, on, wide_bce)
+
     turn = math.radians(cfg.max_turn_deg)
-    seeds, wide_bce = None, cfg.select_bce_weight if cfg.wide_bce_weight is None else cfg.wide_bce_weight
+    seeds = None
     if cfg.wide_hypotheses > 0 and wide_needed(model, j, cfg.wide_trigger * shift, cfg.wide_trigger * turn):
         few = selection_points(model, trainer.valid, j, cfg.wide_points)
-        seeds = wide_search(lambda c: score(c, few, wide_bce), centres[[0, half % h]], cfg.wide_hypotheses,
+        seeds = wide_search(lambda c: wide_score(c, few), centres[[0, half % h]], cfg.wide_hypotheses,
                             cfg.wide_shift * median_range, math.radians(cfg.wide_turn_deg), cfg.wide_keep,
                             np.random.default_rng([trainer.cfg.seed, j, 1]),  # the rounds draw as without it
                             points=len(few[0]))
@@ -231,8 +236,7 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
     if cfg.refine_top > 0:
         best = refine(score, np.concatenate(seen_c), torch.cat(seen_l), cfg.refine_top, cfg.refine_steps,
                       cfg.refine_lr, model.scans.dtype)
-    if seeds is not None:  # the wide search's seeds, refined apart, replace the rounds' best only if lower
-        wide_score = lambda c: score(c, pts, wide_bce)  # noqa: E731
+    if seeds is not None:  # the wide search's seeds, refined apart, replace the rounds' best if lower (prefer_wide)
         far = refine(wide_score, seeds, wide_score(seeds), cfg.wide_refine, cfg.refine_steps, cfg.refine_lr,
                      model.scans.dtype)
         best = prefer_wide(best, far, score(np.stack([best, far])), cfg.wide_margin, cfg.wide_heading_only)
