@@ -184,6 +184,11 @@ def test_register_writes_run_folder(runs, method):
     assert np.isfinite(metrics["ate"]) and metrics["ate"] >= 0
     info = json.loads((out / "run.json").read_text())
     assert info["method"] == method and info["num_scans"] == NUM_POSES
+    # where the time went, per stage, and the peak memory: in run.json and printed
+    stages = ("load_s", "registration_s" if method == "icp-plane" else "training_s", "write_s", "peak_rss_mb")
+    assert all(info["timings"][k] > 0 for k in stages), info["timings"]
+    assert "time: loading" in res.stdout and "peak memory" in res.stdout
+    assert info["stop_reason"] == ""  # ran every epoch (no stopping rule in these runs)
     assert yaml.safe_load((out / "config.yaml").read_text())["method"] == method
     assert (out / "map.ply").read_bytes().startswith(b"ply")
 

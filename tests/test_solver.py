@@ -290,3 +290,45 @@ def test_lnet_pose_input_makes_the_correction_depend_on_the_warm_start_pose():
     scan_only = LNet(LNetConfig(conv_channels=[8], fc_channels=[16]))
     same = scan_only(scans, poses)
     torch.testing.assert_close(same, same[:1].expand(6, 3))  # the paper's L-Net sees the scan only
+
+
+def test_loss_plateau_rule():
+    from deepmapping.solver.trainer import loss_plateau
+
+    falling = list(np.linspace(1.0, 0.5, 40))
+    assert not loss_plateau(falling, 10, 0.01)  # 0.5 lower over 40 epochs: still improving
+    assert loss_plateau(falling[:20] + [0.5] * 20, 10, 0.01)  # flat for the last 20 epochs
+    assert not loss_plateau([1.0] * 19, 10, 0.01)  # fewer than two windows: never
+    noisy = [0.5 + 0.02 * (-1) ** i for i in range(20)]  # flat with noise: the window means agree
+    assert loss_plateau(noisy, 10, 0.01)
+    assert loss_plateau(falling, 10, 0.6)  # 0.6 x the mean is more than it gained
+
+
+def test_stopping_rule_ends_training_when_the_loss_stops_improving(small_scans):
+    """A loose rule (5 % over 2 epochs) ends a 40-epoch run early and says why; the epoch budget
+    stays the upper bound; off, the run takes every epoch; the M-Net warm-up's epochs do not count."""
+    from deepmapping.api import register
+
+    rule = {"optim.epochs": 40, "optim.stop_min_improvement": 0.05, "optim.stop_window": 2}
+    stopped = register(small_scans, _quick_cfg(**rule))
+    last = stopped.history["epoch"][-1]
+    assert 4 <= last < 40, last
+    assert "optim.stop_min_improvement" in stopped.history["stop_reason"]
+    full = register(small_scans, _quick_cfg(**{"optim.epochs": 6}))
+    assert full.history["epoch"][-1] == 6 and full.history["stop_reason"] == ""
+    warm = register(small_scans, _quick_cfg(**rule | {"optim.mnet_warmup_epochs": 30}))
+    assert warm.history["epoch"][-1] >= 34  # two windows after the warm-up at the earliest
+
+
+def test_fast_profile_is_the_default_with_cheaper_steps_and_refuses_3d_data():
+    from deepmapping.cli.register_cmd import build_config
+    from deepmapping.errors import ConfigError
+
+    fast, default = load_config("fast"), load_config("default")
+    assert (fast.loss.beams_per_scan, fast.loss.free_samples, fast.lnet.stride) == (32, 2, 2)
+    assert fast.loss.model_copy(update={"beams_per_scan": 64, "free_samples": 4}) == default.loss
+    assert fast.lnet.model_copy(update={"stride": 1}) == default.lnet
+    assert fast.mnet == default.mnet and fast.optim == default.optim
+    assert build_config("fast", None, "deepmapping", None, None, None, None, None, {}).profile == "fast"
+    with pytest.raises(ConfigError, match="2D scans"):
+        build_config("fast", None, "deepmapping", None, None, None, None, None, {}, is_3d=True)

@@ -26,7 +26,8 @@ class Result:
     init_poses: np.ndarray | None = None
     metrics: dict | None = None
     # per-log lists (iteration, epoch, time_s, loss, bce, chamfer, ate) and "rollbacks": one dict
-    # per NaN/inf step that training rolled back from (epoch, step, what, lr_scale after it)
+    # per NaN/inf step that training rolled back from (epoch, step, what, lr_scale after it);
+    # "stop_reason": why training ended before optim.epochs ("" = it ran them all)
     history: dict = field(default_factory=dict)
     occupancy: Callable[[np.ndarray], np.ndarray] | None = None  # M-Net: (M, D) -> p(occupied)
     # trained L-Net (DeepMapping only): (points (M, N, D), valid (M, N), init=None) -> poses of new scans
@@ -35,6 +36,8 @@ class Result:
     placements: np.ndarray | None = None
     # the M-Net's encoding as built (data units): point spacing, finest period, frequencies, bands
     map_resolution: dict | None = None
+    # where the time went (s): "warm_start_s", "curriculum_s" (cold start), "training_s"
+    timings: dict = field(default_factory=dict)
 
 
 def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | Path | None = None,
@@ -62,7 +65,10 @@ def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | 
         t0 -= saved["elapsed_s"]
     else:
         init = warm_start_poses(scans, cfg, on_icp_progress)
-    return _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_place)
+    warm_start_s = time.perf_counter() - t0 if saved is None else 0.0
+    result = _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_place)
+    result.timings = {"warm_start_s": warm_start_s, **result.timings}
+    return result
 
 
 BASELINES = ("icp-point", "icp-plane", "icp-planar", "multiway", "loop-closure", "kiss-icp")
@@ -233,11 +239,15 @@ def _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_place=N
     trainer.extra = {"init_poses_input": init.tolist(), "frame": frame.to_dict(), "map_resolution": map_resolution}
     if saved is not None:
         ckpt.restore(trainer, saved)
+    t_train = time.perf_counter()
     trainer.run(checkpoint, on_log, on_epoch, on_place)
+    training_s = time.perf_counter() - t_train
     poses = frame.from_norm(model.all_poses().cpu().numpy().astype(np.float64))
     result = _finish(scans, cfg, poses, t0, init=init)
     result.map_resolution = map_resolution
-    result.history = dict(trainer.state.history, rollbacks=trainer.state.rollbacks)
+    result.timings = {"curriculum_s": trainer.curriculum_s, "training_s": training_s - trainer.curriculum_s}
+    result.history = dict(trainer.state.history, rollbacks=trainer.state.rollbacks,
+                          stop_reason=trainer.state.stop_reason)
     if trainer.use_curriculum:
         result.placements = frame.from_norm(model.init_poses.cpu().numpy().astype(np.float64))
     result.occupancy = _occupancy_fn(model, frame, device)

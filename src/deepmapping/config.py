@@ -106,6 +106,12 @@ class OptimConfig(_Section):
     lr_final_factor: float = Field(1.0, ge=0)  # cosine decay to lr * factor (1.0 = constant lr, as the paper)
     eval_every: int = Field(50, ge=1)  # evaluate ATE (when gt known) and log every N epochs
     early_stop_tol: NonNegFloat | None = None  # stop when poses move less than this (units) over a log interval
+    # The stopping rule (None = off): training ends when the mean loss of the last stop_window
+    # epochs is lower than that of the stop_window epochs before them by less than this fraction
+    # of it (the loss has stopped improving); optim.epochs stays the upper bound. Epochs of the
+    # M-Net warm-up (poses held) do not count.
+    stop_min_improvement: NonNegFloat | None = None
+    stop_window: PosInt = 20
     checkpoint_every_s: float = Field(30.0, ge=0)
 
 
@@ -280,6 +286,9 @@ PROFILES: dict[str, dict] = {
     # Cold start (no initial poses, no classical registration): the default profile after the
     # curriculum (section "curriculum", docs/method.md). `--warm-start none` picks it.
     "cold": {"warm_start": {"method": "none"}, "curriculum": {"enabled": "on"}},
+    # 2D scans of 128 beams or more, about 3x faster training than default: half the beams and
+    # free-space samples a step, L-Net convolutions at stride 2 (docs/method.md, "Speed")
+    "fast": {"lnet": {"stride": 2}, "loss": {"free_samples": 2, "beams_per_scan": 32}},
     # §4.2 (AVD) exactly: C(64)-C(128)-C(256)-C(1024)-AM(1)-FC(512)-FC(256)-FC(3) on depth images
     # (PointNet FC(64)-...-FC(1024) on clouds), the §4.1 M-Net with a 3-D input, 35 free-space
     # samples per ray, lambda = 0.1, batch 8, 3000 epochs, Adam lr 1e-3; no warm start.
@@ -292,7 +301,7 @@ PROFILES: dict[str, dict] = {
     },
     # Fast 3D path (benchmarks/avd_3d.py measures it).
     "default-3d": {
-        "lnet": {"conv_channels": [32, 64, 128], "stride": 2, "fc_channels": [256, 128], "zero_init_output": True,
+        "lnet": {"conv_channels": [32, 64, 128], "fc_channels": [256, 128], "zero_init_output": True,
                  "feature_norm": True, "feature_std_floor": 0.1, "lr_factor": 0.3, "pose_input_freqs": 8,
                  "point_channels": [64, 128, 256], "pointnet_lr_factor": 0.1},
         "mnet": {"kind": "fourier", "hidden": [128, 128, 128], "fourier_features": 16, "coarse_to_fine": 0.5,
@@ -310,7 +319,8 @@ PROFILES: dict[str, dict] = {
 }
 
 
-PROFILE_BASE = {"cold": "default"}  # profiles written as changes to another one
+PROFILE_BASE = {"cold": "default", "fast": "default"}  # profiles written as changes to another one
+PROFILES_2D = ("fast",)  # tuned for 2D scans only
 
 
 def load_config(profile: str = "default", path: str | Path | None = None, overrides: dict | None = None) -> Config:

@@ -90,8 +90,8 @@ def register(
                                 "or a CARMEN log (.clf/.log, .gz/.bz2)."),
     method: str = typer.Option("deepmapping", help=METHODS),
     out: Optional[Path] = typer.Option(None, help="Run folder (default: runs/<timestamp>_<method>)."),
-    profile: str = typer.Option("default", help="default (fast) | paper (§4.1 / §4.2 exactly); 3D data "
-                                "gets the -3d variant."),
+    profile: str = typer.Option("default", help="default | fast (2D scans of 128+ beams: about 3x less "
+                                "training time) | paper (§4.1 / §4.2 exactly); 3D data gets the -3d variant."),
     config: Optional[Path] = typer.Option(None, help="YAML/JSON config file (sections as in config.yaml)."),
     set: Optional[List[str]] = typer.Option(None, "--set", help="Override a setting: --set optim.epochs=200."),
     epochs: Optional[int] = typer.Option(None, help="Number of epochs."),
@@ -147,6 +147,12 @@ def register(
         print_metrics(console, {result.method: result.metrics})
     if result.history.get("rollbacks"):
         typer.echo(register_cmd.rollback_note(result.history["rollbacks"], out))
+    if result.history.get("stop_reason"):
+        epochs = (result.history.get("epoch") or [0])[-1]
+        typer.echo(f"training stopped after {epochs:g} of {result.config.optim.epochs} epochs: "
+                   f"{result.history['stop_reason']}")
+    if result.timings:
+        typer.echo(register_cmd.timings_line(result.timings))
     typer.echo(f"results in {out}")
 
 

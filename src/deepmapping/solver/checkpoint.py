@@ -40,6 +40,8 @@ def capture(trainer) -> dict:
         "lr_scale": st.lr_scale,
         "rollbacks": copy.deepcopy(st.rollbacks),
         "early_stop_ref": None if st.early_stop_ref is None else st.early_stop_ref.copy(),
+        "epoch_losses": list(st.epoch_losses),
+        "stop_reason": st.stop_reason,
         "config": trainer.cfg.model_dump(),
         **trainer.extra,
     }
@@ -73,3 +75,4 @@ def restore(trainer, data: dict) -> None:
     st.lr_scale, st.rollbacks = data.get("lr_scale", 1.0), copy.deepcopy(data.get("rollbacks", []))
     ref = data.get("early_stop_ref")
     st.early_stop_ref = None if ref is None else ref.copy()
+    st.epoch_losses, st.stop_reason = list(data.get("epoch_losses", [])), data.get("stop_reason", "")

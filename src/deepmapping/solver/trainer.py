@@ -44,6 +44,17 @@ class TrainState:
     lr_scale: float = 1.0  # x every learning rate: ROLLBACK_LR_FACTOR per rollback
     rollbacks: list = field(default_factory=list)  # one dict per rollback (epoch, step, what, lr_scale)
     early_stop_ref: np.ndarray | None = None  # poses at the last log, for optim.early_stop_tol
+    epoch_losses: list = field(default_factory=list)  # mean loss of each epoch since the M-Net warm-up
+    stop_reason: str = ""  # why training ended before optim.epochs ("" = it ran them all)
+
+
+def loss_plateau(losses: list, window: int, min_improvement: float) -> bool:
+    """The stopping rule: whether the mean of the last ``window`` epoch losses is lower than the
+    mean of the ``window`` before them by less than ``min_improvement`` x that earlier mean."""
+    if len(losses) < 2 * window:
+        return False
+    before, last = float(np.mean(losses[-2 * window: -window])), float(np.mean(losses[-window:]))
+    return before - last < min_improvement * abs(before)
 
 
 def epoch_batches(num_scans: int, batch: int, rng: np.random.Generator) -> list[np.ndarray]:
@@ -74,6 +85,8 @@ class Trainer:
         self._t_start = time.perf_counter()
         self._last_ckpt = time.perf_counter()
         self._good: dict | None = None  # the last consistent state (ckpt.capture), see boundary()
+        self._epoch_warmup = False  # whether the last epoch was M-Net warm-up (see _after_epoch)
+        self.curriculum_s = 0.0  # wall time of the cold-start curriculum in this process
 
     def reset_optimizer(self) -> None:
         """A fresh Adam over what produces the poses (L-Net or free poses) and the M-Net."""
@@ -196,7 +209,9 @@ class Trainer:
         self.boundary()
         try:
             if self.use_curriculum_now():
+                t = time.perf_counter()
                 curriculum.run(self, checkpoint_path, on_log, on_place)
+                self.curriculum_s = time.perf_counter() - t
             if cfg.early_stop_tol and st.early_stop_ref is None:  # training's start (a resumed run has it)
                 st.early_stop_ref = self.model.all_poses().cpu().numpy()
                 self.boundary()
@@ -221,6 +236,7 @@ class Trainer:
         rng = np.random.default_rng([self.cfg.seed, self.state.epoch])
         sums = np.zeros(3)
         batches = epoch_batches(self.valid.shape[0], self.cfg.optim.batch_size, rng)
+        self._epoch_warmup = self.mnet_warmup_now()  # its loss is not the stopping rule's
         for idx in batches:
             sums += self.step(idx)
         return sums / len(batches)
@@ -230,13 +246,23 @@ class Trainer:
         cfg, st = self.cfg.optim, self.state
         st.elapsed_s = time.perf_counter() - self._t_start
         out_of_time = cfg.max_time_s is not None and st.elapsed_s >= cfg.max_time_s
-        last = st.epoch >= cfg.epochs or out_of_time
+        st.epoch_losses = [] if self._epoch_warmup else st.epoch_losses + [float(mean[0])]
+        plateau = cfg.stop_min_improvement is not None and loss_plateau(
+            st.epoch_losses, cfg.stop_window, cfg.stop_min_improvement)
+        last = st.epoch >= cfg.epochs or out_of_time or plateau
+        if out_of_time and st.epoch < cfg.epochs:
+            st.stop_reason = f"time budget optim.max_time_s = {cfg.max_time_s:g} s"
+        elif plateau and st.epoch < cfg.epochs:
+            st.stop_reason = (f"the loss improved by less than {100 * cfg.stop_min_improvement:g} % over "
+                              f"{cfg.stop_window} epochs (optim.stop_min_improvement)")
         if st.epoch % cfg.eval_every == 0 or last:
             poses = self._log(st.step, *mean, st.elapsed_s, on_log)
             if st.early_stop_ref is not None:
                 moved = np.abs(_positions(poses) - _positions(st.early_stop_ref)).max()
                 st.early_stop_ref = poses
-                last = last or moved < cfg.early_stop_tol
+                if moved < cfg.early_stop_tol and not last:
+                    st.stop_reason = f"the poses moved less than optim.early_stop_tol = {cfg.early_stop_tol:g}"
+                    last = True
         return last
 
     def _anneal_mnet(self) -> None:

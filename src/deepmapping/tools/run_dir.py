@@ -49,7 +49,8 @@ def write_run(out: Path, scans: ScanSet, result: Result, data_info: dict, plots:
     write_json(out / "run.json", {"method": result.method, "runtime_s": result.runtime_s,
                                   "num_scans": scans.num_scans, "unit": scans.unit,
                                   "unit_scale": scans.unit_scale, **data_info,
-                                  "rollbacks": result.history.get("rollbacks", [])})
+                                  "rollbacks": result.history.get("rollbacks", []),
+                                  "stop_reason": result.history.get("stop_reason", "")})
     cloud, colors = _global_cloud(scans, result.poses)
     write_ply(out / "map.ply", cloud, colors)
     write_pcd(out / "map.pcd", cloud)

@@ -56,6 +56,7 @@ def write_run_3d(out: Path, scans: ScanSet, result: Result, data_info: dict, plo
                                   "num_scans": scans.num_scans, "unit": scans.unit,
                                   "unit_scale": scans.unit_scale, **data_info,
                                   "rollbacks": result.history.get("rollbacks", []),
+                                  "stop_reason": result.history.get("stop_reason", ""),
                                   "map_resolution": result.map_resolution, "occupancy_grid": grid})
     if plots:
         _write_pictures(out, scans, result)
