@@ -329,6 +329,7 @@ def test_fast_profile_is_the_default_with_cheaper_steps_and_refuses_3d_data():
     assert fast.loss.model_copy(update={"beams_per_scan": 64, "free_samples": 4}) == default.loss
     assert fast.lnet.model_copy(update={"stride": 1}) == default.lnet
     assert fast.mnet == default.mnet and fast.optim == default.optim
+    assert load_config("default-3d").lnet.stride == 2  # depth images keep their own cheap L-Net
     assert build_config("fast", None, "deepmapping", None, None, None, None, None, {}).profile == "fast"
     with pytest.raises(ConfigError, match="2D scans"):
         build_config("fast", None, "deepmapping", None, None, None, None, None, {}, is_3d=True)

@@ -301,7 +301,7 @@ PROFILES: dict[str, dict] = {
     },
     # Fast 3D path (benchmarks/avd_3d.py measures it).
     "default-3d": {
-        "lnet": {"conv_channels": [32, 64, 128], "fc_channels": [256, 128], "zero_init_output": True,
+        "lnet": {"conv_channels": [32, 64, 128], "stride": 2, "fc_channels": [256, 128], "zero_init_output": True,
                  "feature_norm": True, "feature_std_floor": 0.1, "lr_factor": 0.3, "pose_input_freqs": 8,
                  "point_channels": [64, 128, 256], "pointnet_lr_factor": 0.1},
         "mnet": {"kind": "fourier", "hidden": [128, 128, 128], "fourier_features": 16, "coarse_to_fine": 0.5,
