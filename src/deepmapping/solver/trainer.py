@@ -44,7 +44,7 @@ class TrainState:
     lr_scale: float = 1.0  # x every learning rate: ROLLBACK_LR_FACTOR per rollback
     rollbacks: list = field(default_factory=list)  # one dict per rollback (epoch, step, what, lr_scale)
     early_stop_ref: np.ndarray | None = None  # poses at the last log, for optim.early_stop_tol
-    epoch_losses: list = field(default_factory=list)  # mean loss of each epoch since the M-Net warm-up
+    epoch_losses: list = field(default_factory=list)  # the last 2 x optim.stop_window epochs' mean losses
     stop_reason: str = ""  # why training ended before optim.epochs ("" = it ran them all)
 
 
@@ -246,7 +246,8 @@ class Trainer:
         cfg, st = self.cfg.optim, self.state
         st.elapsed_s = time.perf_counter() - self._t_start
         out_of_time = cfg.max_time_s is not None and st.elapsed_s >= cfg.max_time_s
-        st.epoch_losses = [] if self._epoch_warmup else st.epoch_losses + [float(mean[0])]
+        # since the M-Net warm-up, only as many as the stopping rule reads (bounded in every checkpoint)
+        st.epoch_losses = [] if self._epoch_warmup else (st.epoch_losses + [float(mean[0])])[-2 * cfg.stop_window:]
         plateau = cfg.stop_min_improvement is not None and loss_plateau(
             st.epoch_losses, cfg.stop_window, cfg.stop_min_improvement)
         last = st.epoch >= cfg.epochs or out_of_time or plateau
