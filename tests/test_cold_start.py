@@ -256,7 +256,8 @@ def test_curriculum_runs_on_planar_3d_cold_starts_and_is_refused_for_6dof():
     scans = avd_trajectory(0, frames=6, width=16, height=12)
     cfg = load_config("default-3d", overrides={"warm_start.method": "none", "optim.epochs": 2, "threads": 1,
                                                "curriculum.steps": 3})
-    assert cfg.curriculum.select_truncate > 0 and cfg.curriculum.wide_hypotheses == 0  # the depth-image ranking
+    c = cfg.curriculum  # the depth-image ranking: truncated Chamfer + free space, a wide search at every image
+    assert c.select_truncate > 0 and c.free_space_weight > 0 and c.wide_hypotheses > 0 and c.wide_trigger == 0
     res = register(scans, cfg)  # auto: on for a cold start of planar (AVD-like) depth images
     assert res.placements is not None and np.allclose(res.placements[:, 1, 3], 0.0, atol=1e-4)
     assert np.isfinite(res.metrics["ate"])
@@ -311,3 +312,72 @@ def test_the_wide_choice_needs_a_margin_and_can_keep_the_rounds_position():
     assert np.array_equal(prefer_wide(best, far, torch.tensor([1.0, 0.8]), 0.15, False), far)
     assert np.array_equal(prefer_wide(best, far, torch.tensor([1.0, 0.8]), 0.15, True), [1.0, 2.0, 0.6])
     assert np.array_equal(prefer_wide(best, far, torch.tensor([1.0, float("nan")]), 0.0, False), best)
+
+
+def _plane_image(depth: float = 2.0):
+    """An 8 x 10 depth image of a wall at ``depth`` in front of the simulator's pinhole camera."""
+    from deepmapping.sim.rgbd import Intrinsics
+
+    intr = Intrinsics.from_hfov(10, 8, 60.0)
+    pts = intr.ray_directions() * depth
+    return intr, torch.as_tensor(pts, dtype=torch.float64)
+
+
+def test_the_pinhole_is_fitted_from_the_depth_images():
+    from deepmapping.solver.curriculum import fit_pinhole
+
+    intr, pts = _plane_image()
+    valid = torch.ones(1, 80, dtype=torch.bool)
+    valid[0, :7] = False  # invalid pixels are left out (their stored points are zero)
+    pts = torch.where(valid[0, :, None], pts, torch.zeros_like(pts))
+    fx, cx, fy, cy = fit_pinhole(pts[None], valid, (8, 10))
+    assert np.allclose([fx, cx, fy, cy], [intr.fx, intr.cx, intr.fy, intr.cy], rtol=1e-9, atol=1e-9)
+
+
+def test_free_space_is_what_every_neighbouring_pixel_saw_beyond():
+    from deepmapping.solver.curriculum import free_depth
+
+    depth = torch.full((4, 5), 3.0)
+    depth[1, 1] = 1.0  # an edge: its neighbours are surely free only up to 1
+    valid = torch.ones(4, 5, dtype=torch.bool)
+    valid[3, 4] = False  # no return: nothing around it is surely free
+    free = free_depth(depth.flatten(), valid.flatten(), (4, 5)).reshape(4, 5)
+    assert torch.all(free[:3, :3] == 1.0) and free[0, 4] == 3.0
+    assert torch.all(free[2:, 3:] == 0.0) and free[3, 2] == 3.0
+
+
+def test_points_in_front_of_what_a_camera_saw_cost_the_rest_do_not():
+    from deepmapping.solver.curriculum import fit_pinhole, free_depth, seen_free
+
+    intr, wall = _plane_image(2.0)
+    valid = torch.ones(80, dtype=torch.bool)
+    pinhole = fit_pinhole(wall[None], valid[None], (8, 10))
+    free = free_depth(wall[:, 2], valid, (8, 10))
+    cam = torch.eye(4, dtype=torch.float64)[None]
+    centre = wall[4 * 10 + 5]  # where a ray through the middle of the image meets the wall
+    pts = torch.stack([centre * 0.5, centre * 0.97, centre * 1.0, centre * 1.5,  # in front, within tol, on, behind
+                       torch.tensor([5.0, 0.0, 1.0], dtype=torch.float64),  # outside the image
+                       torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)])  # behind the camera
+    each = [float(seen_free(p[None, None], torch.ones(1, dtype=torch.bool), cam, free, pinhole, (8, 10), 0.1))
+            for p in pts]
+    assert each == [1.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+    away = torch.diag(torch.tensor([-1.0, 1.0, -1.0, 1.0], dtype=torch.float64))[None]  # the camera turned around
+    assert float(seen_free(pts[:1][None], torch.ones(1, dtype=torch.bool), away, free, pinhole, (8, 10), 0.1)) == 0.0
+
+
+@pytest.mark.parametrize("weight", [0.0, 3.0])
+def test_the_curriculum_checks_free_space_on_depth_images_when_weighted(weight, monkeypatch):
+    from deepmapping.api import register
+    from deepmapping.experiments.exp_avd import avd_trajectory
+    from deepmapping.solver import curriculum
+
+    calls = []
+    plain = curriculum.seen_free
+    monkeypatch.setattr(curriculum, "seen_free", lambda *a, **k: calls.append(1) or plain(*a, **k))
+    scans = avd_trajectory(0, frames=3, width=16, height=12)
+    cfg = load_config("default-3d", overrides={"warm_start.method": "none", "optim.epochs": 1, "threads": 1,
+                                               "curriculum.steps": 2, "curriculum.wide_hypotheses": 64,
+                                               "curriculum.free_space_weight": weight})
+    res = register(scans, cfg)
+    assert res.placements is not None and np.all(np.isfinite(res.placements))
+    assert (len(calls) > 0) == (weight > 0)

@@ -177,6 +177,11 @@ class CurriculumConfig(_Section):
     wide_bce_weight: float | None = Field(None, ge=0)
     wide_margin: float = Field(0.0, ge=0)
     wide_heading_only: bool = False  # True: take only its heading, the position from the rounds
+    # depth images: + free_space_weight x how far the new view's points lie in front of what the
+    # predecessor saw along its pixels, and back (eq. 4's free-space labels from the two images
+    # themselves, not the M-Net); tolerance free_space_tolerance x the scan's median range
+    free_space_weight: float = Field(0.0, ge=0)
+    free_space_tolerance: float = Field(0.05, gt=0)
     log_every: int = Field(8, ge=1)  # log (loss, ATE) every N stages
 
 
@@ -311,10 +316,14 @@ PROFILES: dict[str, dict] = {
                   "mnet_warmup_steps": 100},
         "warm_start": {"method": "auto"},
         # cold start of planar (AVD-like) depth images: rank the hypotheses by the truncated
-        # Chamfer distance (views overlap in part) and search headings only: a shift along a wall
-        # is not seen in one view, and the untruncated Chamfer term prefers no motion and no turn
+        # Chamfer distance (views overlap in part) + what each view says is free space in the
+        # other; the rounds search headings only, a wide search (Chamfer-only screen, every
+        # image) finds moves: the untruncated Chamfer term prefers no motion and no turn, and
+        # without the free-space check a turn that overlaps better stands in for a move
         # (docs/method.md, "Cold start on depth images")
-        "curriculum": {"select_truncate": 0.05, "max_shift": 0.03, "wide_hypotheses": 0},
+        "curriculum": {"select_truncate": 0.05, "max_shift": 0.03, "free_space_weight": 3.0,
+                       "wide_hypotheses": 3500, "wide_shift": 0.5, "wide_turn_deg": 45.0, "wide_points": 128,
+                       "wide_keep": 16, "wide_refine": 16, "wide_trigger": 0.0, "wide_bce_weight": 0.0},
     },
 }
 

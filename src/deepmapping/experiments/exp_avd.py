@@ -46,7 +46,9 @@ PAPER_TABLE_2 = {"deepmapping": 80.0, "direct": 77.1, "multiway": 58.1}
 THRESHOLD_MM = AVD_SUCCESS_M * 1000.0  # the paper's criterion, defined in core.metrics3d
 
 FULL = {"trajectories": 10, "frames": 16, "width": 80, "height": 60, "epochs": None, "eval_every": 10}
-QUICK = {"trajectories": 2, "frames": 8, "width": 32, "height": 24, "epochs": 10, "eval_every": 5}
+# quick: the cold rows' wide search is smaller (a smoke run in seconds, not a measurement)
+QUICK = {"trajectories": 2, "frames": 8, "width": 32, "height": 24, "epochs": 10, "eval_every": 5,
+         "cold_overrides": {"curriculum.wide_hypotheses": 256, "curriculum.wide_refine": 2}}
 
 
 def sizes(quick: bool) -> dict:
@@ -55,7 +57,7 @@ def sizes(quick: bool) -> dict:
 
 def jobs(quick: bool) -> list[Job]:
     s = sizes(quick)
-    kw = {k: s[k] for k in ("frames", "width", "height", "epochs", "eval_every")}
+    kw = {k: s[k] for k in ("frames", "width", "height", "epochs", "eval_every", "cold_overrides") if k in s}
     return [Job(f"traj{t}-{m}", "deepmapping.experiments.exp_avd:run", {"trajectory": t, "method": m} | kw)
             for t in range(s["trajectories"]) for m in METHODS]
 
@@ -82,8 +84,9 @@ def avd_trajectory(trajectory: int, frames: int = 16, seed: int = 0, width: int 
 
 
 def run(trajectory: int, method: str, frames: int, width: int, height: int, epochs: int | None = None,
-        eval_every: int = 10, seed: int = 0) -> dict:
-    """Register AVD-like trajectory ``trajectory`` with ``method`` (a key of METHODS)."""
+        eval_every: int = 10, seed: int = 0, cold_overrides: dict | None = None) -> dict:
+    """Register AVD-like trajectory ``trajectory`` with ``method`` (a key of METHODS);
+    ``cold_overrides`` are added to the cold rows' settings (quick runs)."""
     from deepmapping.api import evaluate_poses, register
     from deepmapping.config import load_config
 
@@ -96,6 +99,8 @@ def run(trajectory: int, method: str, frames: int, width: int, height: int, epoc
     overrides = overrides | {"eval.success_threshold": THRESHOLD_MM, "optim.eval_every": eval_every, "seed": seed}
     if epochs is not None:
         overrides["optim.epochs"] = epochs
+    if cold_overrides and overrides.get("warm_start.method") == "none":
+        overrides |= cold_overrides
     result = register(scans, load_config(PROFILE, overrides=overrides))
     out |= _metrics(result.metrics) | {"runtime_s": float(result.runtime_s), "overrides": overrides}
     if result.history:

@@ -141,6 +141,50 @@ def truncated_chamfer(x: torch.Tensor, xv: torch.Tensor, y: torch.Tensor, yv: to
     return (ax + ay) / r
 
 
+def fit_pinhole(scans: torch.Tensor, valid: torch.Tensor, grid_shape: tuple[int, int]) -> tuple[float, ...]:
+    """(fx, cx, fy, cy) of organized depth images (pixel j = (j // W, j % W), z forward), fitted
+    by least squares to u = fx x / z + cx, v = fy y / z + cy over the valid points."""
+    h, w = grid_shape
+    p = scans.detach().double().cpu().numpy().reshape(-1, h * w, 3)
+    ok = valid.cpu().numpy().reshape(-1, h * w) & (p[..., 2] > 1e-9)
+    j = np.broadcast_to(np.arange(h * w), ok.shape)[ok]
+    out = []
+    for coord, pixel in ((p[..., 0][ok] / p[..., 2][ok], j % w), (p[..., 1][ok] / p[..., 2][ok], j // w)):
+        a = np.stack([coord, np.ones_like(coord)], 1)
+        out.extend(np.linalg.lstsq(a, pixel.astype(np.float64), rcond=None)[0])
+    return tuple(float(x) for x in out)
+
+
+def free_depth(depth: torch.Tensor, valid: torch.Tensor, grid_shape: tuple[int, int]) -> torch.Tensor:
+    """(N,) how far each pixel's ray is surely free: the nearest depth among it and its 8
+    neighbours, 0 where any of them has no return (at depth edges a point projected to the
+    next pixel is not taken for free space)."""
+    img = torch.where(valid, depth, torch.zeros_like(depth)).reshape(1, 1, *grid_shape)
+    return (-torch.nn.functional.max_pool2d(-img, 3, stride=1, padding=1)).flatten().clamp(min=0)
+
+
+def seen_free(pts: torch.Tensor, pv: torch.Tensor, cams: torch.Tensor, depth: torch.Tensor, intr: tuple, grid_shape: tuple[int, int], tol: float) -> torch.Tensor:
+    """Eq. 4's free-space labels taken exactly from one depth image: the mean over points ``pts``
+    (H, P, 3) global (validity ``pv`` (P,)) of how far each lies in front of the surface that the
+    camera ``cams`` (H, 4, 4) saw along its pixel (``depth`` (N,), from free_depth): 0 within
+    ``tol``, rising to 1 at 2 x ``tol`` in front; points behind that surface or outside the image
+    cost 0."""
+    fx, cx, fy, cy = intr
+    h, w = grid_shape
+    rot, t = cams[:, :3, :3], cams[:, :3, 3]
+    q = (pts - t[:, None, :]) @ rot  # global -> camera frame (R^T (p - t), row-wise)
+    z = q[..., 2]
+    zs = z.clamp(min=1e-6)
+    u = torch.round(fx * q[..., 0] / zs + cx)
+    v = torch.round(fy * q[..., 1] / zs + cy)
+    inside = (z > 1e-6) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    idx = (v.clamp(0, h - 1) * w + u.clamp(0, w - 1)).long()
+    seen = inside & pv[None, :]
+    excess = ((depth[idx] - z) / tol - 1).clamp(0, 1) * seen
+    wv = pv.to(pts.dtype)
+    return excess.sum(1) / wv.sum().clamp(min=1)
+
+
 def candidate_losses(model, pts: tuple, j: int, candidates: torch.Tensor, prev: tuple | None,
                      chamfer_weight: float, bce_weight: float = 1.0, free_samples: int = 4,
                      truncate: float | None = None) -> torch.Tensor:
@@ -167,6 +211,34 @@ def candidate_losses(model, pts: tuple, j: int, candidates: torch.Tensor, prev: 
     y, yv = prev[0][None].expand(h, -1, -1), prev[1][None].expand(h, -1)
     ch = truncated_chamfer(occ, vj, y, yv, truncate) if truncate else chamfer(occ, vj, y, yv)
     return bce + chamfer_weight * ch
+
+
+def free_space_check(trainer: Trainer, j: int, prev: np.ndarray, prev_glob: tuple,
+                     median_range: float) -> Callable | None:
+    """Depth images with ``curriculum.free_space_weight`` > 0: a function (cameras (H, 4, 4), the new
+    scan's points and validity) -> (H,) that charges the new view's points lying in front of what
+    the placed predecessor saw (seen_free), and the predecessor's points in front of what the new
+    view sees; None otherwise."""
+    cfg, model = trainer.cfg.curriculum, trainer.model
+    grid = model.lnet.grid_shape
+    if cfg.free_space_weight == 0 or not model.is_3d or grid is None:
+        return None
+    if trainer.pinhole is None:
+        trainer.pinhole = fit_pinhole(model.scans, trainer.valid, grid)
+    prev_cam = candidate_poses(model, prev[None])
+    tol = cfg.free_space_tolerance * median_range
+    prev_free = free_depth(model.scans[j - 1][:, 2], trainer.valid[j - 1], grid)
+    new_free = free_depth(model.scans[j][:, 2], trainer.valid[j], grid)
+
+    def check(cams: torch.Tensor, on: tuple) -> torch.Tensor:
+        h = len(cams)
+        placed = transform(cams, on[0][None].expand(h, -1, -1))
+        there = seen_free(placed, on[1], prev_cam.expand(h, -1, -1), prev_free, trainer.pinhole, grid, tol)
+        back = seen_free(prev_glob[0][None].expand(h, -1, -1), prev_glob[1], cams, new_free, trainer.pinhole,
+                         grid, tol)
+        return cfg.free_space_weight * (there + back)
+
+    return check
 
 
 @torch.no_grad()
@@ -199,9 +271,14 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
     else:
         ch_weight, truncate = trainer.cfg.loss.chamfer_weight, None
 
+    free_check = free_space_check(trainer, j, prev, prev_glob, median_range)
+
     def score(c, on=pts, bce_weight=cfg.select_bce_weight) -> torch.Tensor:
-        return candidate_losses(model, on, j, candidate_poses(model, c), prev_glob, ch_weight,
-                                bce_weight, truncate=truncate)
+        cams = candidate_poses(model, c)
+        loss = candidate_losses(model, on, j, cams, prev_glob, ch_weight, bce_weight, truncate=truncate)
+        if free_check is not None:
+            loss = loss + free_check(cams, on)
+        return loss
 
     wide_bce = cfg.select_bce_weight if cfg.wide_bce_weight is None else cfg.wide_bce_weight
 
