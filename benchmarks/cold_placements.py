@@ -5,6 +5,7 @@ on depth images"): the measurements that decide its settings, a few minutes each
     .venv/bin/python benchmarks/cold_placements.py robustness --stride 8 \\
         --set curriculum.refine_top=8 --set curriculum.max_turn_deg=60 --set curriculum.hypotheses=64
     .venv/bin/python benchmarks/cold_placements.py avd --trajectories 0,1,2 --set curriculum.select_truncate=0.05
+    .venv/bin/python benchmarks/cold_placements.py avd --trajectories 20,21,22,23 --depth-noise
 
 ``robustness``: every ``stride``-th scan of the paper's 256-pose trajectories, profile ``cold``,
 one epoch after the curriculum: the ATE of the placements alone (what the 250 epochs start from;
@@ -99,13 +100,28 @@ def robustness(trajectories: list[int], stride: int, extra: dict, why: bool = Fa
     print(f"below 20 px: {sum(a < 20 for a in placed)} of {len(placed)}")
 
 
-def avd(trajectories: list[int], extra: dict) -> None:
+def kinect_noise(scans, seed: int):
+    """Depth noise as a Kinect's (sigma = 1.2 mm + 1.9 mm x (z - 0.4 m)^2 along the ray, Nguyen et
+    al. 2012), 3 % of the pixels dropped, depth rounded to mm (scans in metres)."""
+    rng = np.random.default_rng([7, seed])
+    z = scans.points[..., 2].astype(np.float64)
+    zn = np.round((z + rng.normal(0, 1, z.shape) * (0.0012 + 0.0019 * (z - 0.4) ** 2)) * 1000) / 1000
+    keep = scans.valid & (rng.uniform(size=z.shape) > 0.03) & (zn > 0)
+    scale = zn / np.where(z > 0, z, 1)
+    scans.points = np.where(keep[..., None], scans.points * scale[..., None], 0).astype(np.float32)
+    scans.valid = keep
+    return scans
+
+
+def avd(trajectories: list[int], extra: dict, noise: bool = False) -> None:
     from deepmapping.api import evaluate_poses, register
     from deepmapping.config import load_config
     from deepmapping.experiments.exp_avd import THRESHOLD_MM, avd_trajectory
 
     for t in trajectories:
         scans = avd_trajectory(t, 16, 0, 80, 60)
+        if noise:
+            scans = kinect_noise(scans, t)
         over = {"warm_start.method": "none", "curriculum.enabled": "on", "loss.chamfer_weight": 0.1,
                 "eval.success_threshold": THRESHOLD_MM, "threads": 1} | extra
         t0 = time.perf_counter()
@@ -124,6 +140,7 @@ def main() -> None:
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--why", action="store_true", help="robustness: for the first scans placed > 20 px or "
                     "10 deg off, the loss of the chosen and of the true placement (search or criterion failure)")
+    ap.add_argument("--depth-noise", action="store_true", help="avd: Kinect-like depth noise and dropped pixels")
     a = ap.parse_args()
     torch.set_num_threads(1)
     default = "50,51,52,53,54" if a.kind == "robustness" else "0,1,2"
@@ -132,7 +149,7 @@ def main() -> None:
     if a.kind == "robustness":
         robustness(ts, a.stride, _overrides(a.sets), a.why)
     else:
-        avd(ts, _overrides(a.sets))
+        avd(ts, _overrides(a.sets), a.depth_noise)
 
 
 if __name__ == "__main__":
