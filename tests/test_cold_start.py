@@ -332,6 +332,10 @@ def test_the_pinhole_is_fitted_from_the_depth_images():
     pts = torch.where(valid[0, :, None], pts, torch.zeros_like(pts))
     fx, cx, fy, cy = fit_pinhole(pts[None], valid, (8, 10))
     assert np.allclose([fx, cx, fy, cy], [intr.fx, intr.cx, intr.fy, intr.cy], rtol=1e-9, atol=1e-9)
+    bent = pts.clone()
+    bent[:, 0] = bent[:, 0] ** 3  # not a pinhole (a strongly distorting lens): no check at all
+    assert fit_pinhole(bent[None], valid, (8, 10)) is None
+    assert fit_pinhole(pts[None], torch.zeros_like(valid), (8, 10)) is None  # no valid point
 
 
 def test_free_space_is_what_every_neighbouring_pixel_saw_beyond():

@@ -1,9 +1,11 @@
 """Cold start by curriculum: scans enter the map one chunk at a time (§3.4, the SLAM setting).
 
 No initial poses and no classical registration. Each new scan is placed by the paper's own
-loss: the lowest (0.1 x eq. 4 + lambda x Chamfer) of random hypotheses near its predecessor, then
-refined by gradient steps of that loss together with the M-Net. When every scan is placed, the placements become the warm start
-(§3.5) of ordinary training: T_i = T_place,i ∘ f_theta(S_i). See docs/method.md ("Cold start").
+loss: the lowest (0.1 x eq. 4 + lambda x Chamfer) of random hypotheses near its predecessor
+(depth images: + eq. 4's free-space labels read from the two images, seen_free), then refined
+by gradient steps of that loss together with the M-Net. When every scan is placed, the
+placements become the warm start (§3.5) of ordinary training: T_i = T_place,i ∘ f_theta(S_i).
+See docs/method.md ("Cold start").
 """
 
 from __future__ import annotations
@@ -141,17 +143,23 @@ def truncated_chamfer(x: torch.Tensor, xv: torch.Tensor, y: torch.Tensor, yv: to
     return (ax + ay) / r
 
 
-def fit_pinhole(scans: torch.Tensor, valid: torch.Tensor, grid_shape: tuple[int, int]) -> tuple[float, ...]:
+def fit_pinhole(scans: torch.Tensor, valid: torch.Tensor, grid_shape: tuple[int, int]) -> tuple[float, ...] | None:
     """(fx, cx, fy, cy) of organized depth images (pixel j = (j // W, j % W), z forward), fitted
-    by least squares to u = fx x / z + cx, v = fy y / z + cy over the valid points."""
+    by least squares to u = fx x / z + cx, v = fy y / z + cy over the valid points; None when the
+    images are not a pinhole's (an RMS residual above 0.5 pixel) or have too few points."""
     h, w = grid_shape
     p = scans.detach().double().cpu().numpy().reshape(-1, h * w, 3)
     ok = valid.cpu().numpy().reshape(-1, h * w) & (p[..., 2] > 1e-9)
     j = np.broadcast_to(np.arange(h * w), ok.shape)[ok]
+    if len(j) < 3:
+        return None
     out = []
     for coord, pixel in ((p[..., 0][ok] / p[..., 2][ok], j % w), (p[..., 1][ok] / p[..., 2][ok], j // w)):
         a = np.stack([coord, np.ones_like(coord)], 1)
-        out.extend(np.linalg.lstsq(a, pixel.astype(np.float64), rcond=None)[0])
+        fit = np.linalg.lstsq(a, pixel.astype(np.float64), rcond=None)[0]
+        if np.sqrt(np.mean((a @ fit - pixel) ** 2)) > 0.5:
+            return None
+        out.extend(fit)
     return tuple(float(x) for x in out)
 
 
@@ -163,7 +171,8 @@ def free_depth(depth: torch.Tensor, valid: torch.Tensor, grid_shape: tuple[int, 
     return (-torch.nn.functional.max_pool2d(-img, 3, stride=1, padding=1)).flatten().clamp(min=0)
 
 
-def seen_free(pts: torch.Tensor, pv: torch.Tensor, cams: torch.Tensor, depth: torch.Tensor, intr: tuple, grid_shape: tuple[int, int], tol: float) -> torch.Tensor:
+def seen_free(pts: torch.Tensor, pv: torch.Tensor, cams: torch.Tensor, depth: torch.Tensor, intr: tuple,
+              grid_shape: tuple[int, int], tol: float) -> torch.Tensor:
     """Eq. 4's free-space labels taken exactly from one depth image: the mean over points ``pts``
     (H, P, 3) global (validity ``pv`` (P,)) of how far each lies in front of the surface that the
     camera ``cams`` (H, 4, 4) saw along its pixel (``depth`` (N,), from free_depth): 0 within
@@ -218,13 +227,15 @@ def free_space_check(trainer: Trainer, j: int, prev: np.ndarray, prev_glob: tupl
     """Depth images with ``curriculum.free_space_weight`` > 0: a function (cameras (H, 4, 4), the new
     scan's points and validity) -> (H,) that charges the new view's points lying in front of what
     the placed predecessor saw (seen_free), and the predecessor's points in front of what the new
-    view sees; None otherwise."""
+    view sees; None otherwise (and for images that are not a pinhole's: fit_pinhole)."""
     cfg, model = trainer.cfg.curriculum, trainer.model
     grid = model.lnet.grid_shape
     if cfg.free_space_weight == 0 or not model.is_3d or grid is None:
         return None
     if trainer.pinhole is None:
-        trainer.pinhole = fit_pinhole(model.scans, trainer.valid, grid)
+        trainer.pinhole = fit_pinhole(model.scans, trainer.valid, grid) or ()
+    if not trainer.pinhole:
+        return None
     prev_cam = candidate_poses(model, prev[None])
     tol = cfg.free_space_tolerance * median_range
     prev_free = free_depth(model.scans[j - 1][:, 2], trainer.valid[j - 1], grid)
