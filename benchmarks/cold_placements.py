@@ -36,7 +36,8 @@ def _overrides(sets: list[str]) -> dict:
 def explain_placements(gt: np.ndarray, unit: float, log: list, first_scan: np.ndarray) -> None:
     """Wrap curriculum.place_new_scan: after each placement, append (scan, error px, error deg,
     loss of the chosen placement, loss of the true one relative to the placed predecessor, then
-    eq. 4 alone and the Chamfer distance alone, each for the chosen and the true placement).
+    eq. 4 alone, the Chamfer distance alone and the weighted free-space check (0 when off), each for
+    the chosen and the true placement).
     Placements live in the model's normalized frame (points / frame scale); ``first_scan`` (the
     valid points of scan 0 in the data's units) gives that scale, so the true motion is taken to
     the same units before it is compared."""
@@ -68,8 +69,12 @@ def explain_placements(gt: np.ndarray, unit: float, log: list, first_scan: np.nd
                                         cfg.select_bce_weight)
             eq4 = cur.candidate_losses(model, pts, j, both, prev_glob, 0.0)  # eq. 4 alone, weight 1
             ch = cur.candidate_losses(model, pts, j, both, prev_glob, 1.0, 0.0)  # Chamfer alone, weight 1
+            check = cur.free_space_check(trainer, j, prev, prev_glob, float(pts[0][pts[1]].norm(dim=1).median()))
+            fs = check(both, pts) if check is not None else torch.zeros(2)  # weighted, as ranked
+            loss = loss + fs
         log.append((j, unit * float(np.hypot(err[0], err[1])), float(np.degrees(abs(err[2]))),
-                    float(loss[0]), float(loss[1]), float(eq4[0]), float(eq4[1]), float(ch[0]), float(ch[1])))
+                    float(loss[0]), float(loss[1]), float(eq4[0]), float(eq4[1]), float(ch[0]), float(ch[1]),
+                    float(fs[0]), float(fs[1])))
 
     place.plain = plain
     cur.place_new_scan = place
@@ -93,10 +98,10 @@ def robustness(trajectories: list[int], stride: int, extra: dict, why: bool = Fa
         placed.append(float(evaluate_poses(s, r.placements)["ate"]))
         print(f"trajectory {t} stride {stride}: placed ATE {placed[-1]:.1f} px ({time.perf_counter() - t0:.0f} s)",
               flush=True)
-        for j, px, deg, chosen, true, b0, b1, c0, c1 in [e for e in log if e[1] > 20 or e[2] > 10][:3]:
+        for j, px, deg, chosen, true, b0, b1, c0, c1, f0, f1 in [e for e in log if e[1] > 20 or e[2] > 10][:3]:
             cause = "search (the truth is lower)" if true < chosen else "criterion (the truth is higher)"
             print(f"  scan {j}: {px:.1f} px / {deg:.1f} deg off, loss {chosen:.3f} vs truth {true:.3f}: {cause}; "
-                  f"eq. 4 {b0:.3f} vs {b1:.3f}, Chamfer {c0:.4f} vs {c1:.4f}")
+                  f"eq. 4 {b0:.3f} vs {b1:.3f}, Chamfer {c0:.4f} vs {c1:.4f}, free space {f0:.3f} vs {f1:.3f}")
     print(f"below 20 px: {sum(a < 20 for a in placed)} of {len(placed)}")
 
 

@@ -385,3 +385,68 @@ def test_the_curriculum_checks_free_space_on_depth_images_when_weighted(weight, 
     res = register(scans, cfg)
     assert res.placements is not None and np.all(np.isfinite(res.placements))
     assert (len(calls) > 0) == (weight > 0)
+
+
+def _ring_scan(n: int, radius: float, start: float, inc: float) -> torch.Tensor:
+    """A 2D scan of ``n`` beams from bearing ``start`` in steps ``inc`` inside a ring of ``radius``."""
+    a = start + np.arange(n) * inc
+    return torch.as_tensor(np.stack([radius * np.cos(a), radius * np.sin(a)], 1))
+
+
+@pytest.mark.parametrize("n, start, inc", [(180, -np.pi, 2 * np.pi / 180),  # 360 deg, counter-clockwise
+                                           (50, np.pi / 4, -np.pi / 2 / 49)])  # 90 deg, clockwise
+def test_the_beam_bearings_are_fitted_from_the_2d_scans(n, start, inc):
+    from deepmapping.solver.curriculum import fit_polar
+
+    scan = _ring_scan(n, 5.0, start, inc)
+    valid = torch.ones(1, n, dtype=torch.bool)
+    valid[0, 3:9] = False  # beams without a return are left out
+    got_start, got_inc = fit_polar(scan[None], valid)
+    assert abs(np.angle(np.exp(1j * (got_start - start)))) < 1e-9 and abs(got_inc - inc) < 1e-12
+    shuffled = scan[torch.randperm(n, generator=torch.Generator().manual_seed(0))]
+    assert fit_polar(shuffled[None], torch.ones(1, n, dtype=torch.bool)) is None  # not in bearing order
+    assert fit_polar(scan[None], torch.zeros(1, n, dtype=torch.bool)) is None
+
+
+def test_points_in_front_of_what_a_2d_scan_saw_cost_the_rest_do_not():
+    from deepmapping.solver.curriculum import fit_polar, free_depth, seen_free_2d
+
+    n = 50
+    scan = _ring_scan(n, 3.0, np.pi / 4, -np.pi / 2 / 49)  # 90 deg ahead, clockwise, a wall at 3
+    valid = torch.ones(n, dtype=torch.bool)
+    polar = fit_polar(scan[None], valid[None])
+    free = free_depth(scan.norm(dim=1), valid, (n,))
+    pts = torch.tensor([[2.0, 0.0], [2.95, 0.0], [3.5, 0.0], [-2.0, 0.0], [1.0, 0.9]], dtype=torch.float64)
+    one = torch.ones(1, dtype=torch.bool)
+    here = torch.zeros(1, 3, dtype=torch.float64)
+    each = [float(seen_free_2d(p[None, None], one, here, free, polar, 0.1)) for p in pts]
+    assert each == [1.0, 0.0, 0.0, 0.0, 1.0]  # in front, within tol, behind, outside the beams, in front
+    turned = torch.tensor([[1.0, 0.0, np.pi / 2]], dtype=torch.float64)  # at (1, 0), looking along +y
+    assert float(seen_free_2d(torch.tensor([[[1.0, 2.0]]], dtype=torch.float64), one, turned, free, polar, 0.1)) == 1.0
+    assert float(seen_free_2d(torch.tensor([[[3.0, 0.0]]], dtype=torch.float64), one, turned, free, polar, 0.1)) == 0.0
+
+
+@pytest.mark.parametrize("weight", [0.0, 1.0])
+def test_the_curriculum_checks_free_space_on_2d_scans_when_weighted(weight, hard_trajectory, monkeypatch):
+    from deepmapping.api import register
+    from deepmapping.solver import curriculum
+
+    calls = []
+    plain = curriculum.seen_free_2d
+    monkeypatch.setattr(curriculum, "seen_free_2d", lambda *a, **k: calls.append(1) or plain(*a, **k))
+    res = register(hard_trajectory, _cold(**{"optim.epochs": 1, "curriculum.steps": 2, "curriculum.wide_hypotheses": 64,
+                                   "curriculum.free_space_weight": weight}))
+    assert res.placements is not None and np.all(np.isfinite(res.placements))
+    assert (len(calls) > 0) == (weight > 0)
+
+
+def test_the_free_space_charge_rises_over_the_ramp():
+    from deepmapping.solver.curriculum import fit_polar, free_depth, seen_free_2d
+
+    scan = _ring_scan(50, 3.0, np.pi / 4, -np.pi / 2 / 49)
+    valid = torch.ones(50, dtype=torch.bool)
+    polar, free = fit_polar(scan[None], valid[None]), free_depth(scan.norm(dim=1), valid, (50,))
+    p = torch.tensor([[[2.85, 0.0]]], dtype=torch.float64)  # 0.15 in front of the wall: tolerance 0.1 + 0.05
+    one, here = torch.ones(1, dtype=torch.bool), torch.zeros(1, 3, dtype=torch.float64)
+    for ramp, want in ((1.0, 0.5), (10.0, 0.05), (0.25, 1.0)):
+        assert float(seen_free_2d(p, one, here, free, polar, 0.1, ramp)) == pytest.approx(want, rel=1e-6)

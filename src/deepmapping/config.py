@@ -177,11 +177,13 @@ class CurriculumConfig(_Section):
     wide_bce_weight: float | None = Field(None, ge=0)
     wide_margin: float = Field(0.0, ge=0)
     wide_heading_only: bool = False  # True: take only its heading, the position from the rounds
-    # depth images: + free_space_weight x how far the new view's points lie in front of what the
-    # predecessor saw along its pixels, and back (eq. 4's free-space labels from the two images
-    # themselves, not the M-Net); tolerance free_space_tolerance x the scan's median range
+    # + free_space_weight x how far the new scan's points lie in front of what the predecessor saw
+    # along its pixels (2D: beams), and back (eq. 4's free-space labels from the two scans
+    # themselves, not the M-Net): per point 0 within free_space_tolerance x the scan's median
+    # range, rising to 1 at (1 + free_space_ramp) x that tolerance
     free_space_weight: float = Field(0.0, ge=0)
     free_space_tolerance: float = Field(0.05, gt=0)
+    free_space_ramp: float = Field(1.0, gt=0)
     log_every: int = Field(8, ge=1)  # log (loss, ATE) every N stages
 
 

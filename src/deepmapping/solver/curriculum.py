@@ -2,7 +2,7 @@
 
 No initial poses and no classical registration. Each new scan is placed by the paper's own
 loss: the lowest (0.1 x eq. 4 + lambda x Chamfer) of random hypotheses near its predecessor
-(depth images: + eq. 4's free-space labels read from the two images, seen_free), then refined
+(+ eq. 4's free-space labels read from the two scans themselves, seen_free, where weighted), then refined
 by gradient steps of that loss together with the M-Net. When every scan is placed, the
 placements become the warm start (§3.5) of ordinary training: T_i = T_place,i ∘ f_theta(S_i).
 See docs/method.md ("Cold start").
@@ -163,21 +163,52 @@ def fit_pinhole(scans: torch.Tensor, valid: torch.Tensor, grid_shape: tuple[int,
     return tuple(float(x) for x in out)
 
 
-def free_depth(depth: torch.Tensor, valid: torch.Tensor, grid_shape: tuple[int, int]) -> torch.Tensor:
-    """(N,) how far each pixel's ray is surely free: the nearest depth among it and its 8
-    neighbours, 0 where any of them has no return (at depth edges a point projected to the
-    next pixel is not taken for free space)."""
+def fit_polar(scans: torch.Tensor, valid: torch.Tensor) -> tuple[float, float] | None:
+    """(start, increment) of organized 2D scans (beam j at bearing start + j x increment, radians),
+    fitted to the valid beams' bearings; None when the beams are not in bearing order (an RMS
+    residual above half an increment) or there are too few of them."""
+    p = scans.detach().double().cpu().numpy()
+    ok = valid.cpu().numpy() & (np.hypot(p[..., 0], p[..., 1]) > 1e-9)
+    s, j = np.nonzero(ok)  # row-major: beams in order within each scan
+    if len(j) < 3:
+        return None
+    bearing = np.arctan2(p[s, j, 1], p[s, j, 0])
+    same = s[1:] == s[:-1]
+    steps = (np.angle(np.exp(1j * np.diff(bearing))) / np.maximum(np.diff(j), 1))[same]
+    if len(steps) == 0 or abs(float(np.median(steps))) < 1e-9:
+        return None
+    inc = float(np.median(steps))
+    start = float(np.angle(np.exp(1j * (bearing - inc * j)).mean()))
+    resid = np.angle(np.exp(1j * (bearing - inc * j - start)))
+    if np.sqrt(np.mean(resid ** 2)) > 0.5 * abs(inc):
+        return None
+    return start, inc
+
+
+def free_depth(depth: torch.Tensor, valid: torch.Tensor, grid_shape: tuple[int, ...]) -> torch.Tensor:
+    """(N,) how far each pixel's (2D: beam's) ray is surely free: the nearest depth among it and its
+    neighbours (8 in an image, 2 along a scan), 0 where any of them has no return (at depth edges a
+    point projected to the next pixel is not taken for free space)."""
     img = torch.where(valid, depth, torch.zeros_like(depth)).reshape(1, 1, *grid_shape)
-    return (-torch.nn.functional.max_pool2d(-img, 3, stride=1, padding=1)).flatten().clamp(min=0)
+    pool = torch.nn.functional.max_pool2d if len(grid_shape) == 2 else torch.nn.functional.max_pool1d
+    return (-pool(-img, 3, stride=1, padding=1)).flatten().clamp(min=0)
+
+
+def _excess(depth: torch.Tensor, idx: torch.Tensor, dist: torch.Tensor, seen: torch.Tensor, pv: torch.Tensor,
+            tol: float, ramp: float = 1.0) -> torch.Tensor:
+    """(H,) mean over the valid points of how far each lies in front of the seen surface: 0 within
+    ``tol``, rising to 1 at (1 + ``ramp``) x ``tol``; points not ``seen`` (outside the view) cost 0."""
+    excess = ((depth[idx] - dist) / tol - 1).clamp(0, ramp) / ramp * (seen & pv[None, :])
+    return excess.sum(1) / pv.to(dist.dtype).sum().clamp(min=1)
 
 
 def seen_free(pts: torch.Tensor, pv: torch.Tensor, cams: torch.Tensor, depth: torch.Tensor, intr: tuple,
-              grid_shape: tuple[int, int], tol: float) -> torch.Tensor:
+              grid_shape: tuple[int, int], tol: float, ramp: float = 1.0) -> torch.Tensor:
     """Eq. 4's free-space labels taken exactly from one depth image: the mean over points ``pts``
     (H, P, 3) global (validity ``pv`` (P,)) of how far each lies in front of the surface that the
     camera ``cams`` (H, 4, 4) saw along its pixel (``depth`` (N,), from free_depth): 0 within
-    ``tol``, rising to 1 at 2 x ``tol`` in front; points behind that surface or outside the image
-    cost 0."""
+    ``tol``, rising to 1 at (1 + ``ramp``) x ``tol`` in front; points behind that surface or outside
+    the image cost 0."""
     fx, cx, fy, cy = intr
     h, w = grid_shape
     rot, t = cams[:, :3, :3], cams[:, :3, 3]
@@ -188,10 +219,23 @@ def seen_free(pts: torch.Tensor, pv: torch.Tensor, cams: torch.Tensor, depth: to
     v = torch.round(fy * q[..., 1] / zs + cy)
     inside = (z > 1e-6) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
     idx = (v.clamp(0, h - 1) * w + u.clamp(0, w - 1)).long()
-    seen = inside & pv[None, :]
-    excess = ((depth[idx] - z) / tol - 1).clamp(0, 1) * seen
-    wv = pv.to(pts.dtype)
-    return excess.sum(1) / wv.sum().clamp(min=1)
+    return _excess(depth, idx, z, inside, pv, tol, ramp)
+
+
+def seen_free_2d(pts: torch.Tensor, pv: torch.Tensor, poses: torch.Tensor, ranges: torch.Tensor,
+                 polar: tuple[float, float], tol: float, ramp: float = 1.0) -> torch.Tensor:
+    """seen_free for 2D scans: points ``pts`` (H, P, 2) global against the ranges (N,) (from
+    free_depth) of one scan taken from ``poses`` (H, 3) [x, y, theta], its beams at the bearings
+    ``polar`` (fit_polar) gives; points at a bearing no beam covers cost 0."""
+    start, inc = polar
+    n = ranges.shape[0]
+    c, s = torch.cos(poses[:, 2])[:, None], torch.sin(poses[:, 2])[:, None]
+    d = pts - poses[:, None, :2]
+    qx, qy = c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]  # global -> sensor frame
+    turn = round(2 * math.pi / abs(inc))  # beams per full turn
+    k = torch.round(torch.remainder(math.copysign(1.0, inc) * (torch.atan2(qy, qx) - start), 2 * math.pi)
+                    / abs(inc)).long() % turn
+    return _excess(ranges, k.clamp(max=n - 1), torch.hypot(qx, qy), k < n, pv, tol, ramp)
 
 
 def candidate_losses(model, pts: tuple, j: int, candidates: torch.Tensor, prev: tuple | None,
@@ -224,29 +268,39 @@ def candidate_losses(model, pts: tuple, j: int, candidates: torch.Tensor, prev: 
 
 def free_space_check(trainer: Trainer, j: int, prev: np.ndarray, prev_glob: tuple,
                      median_range: float) -> Callable | None:
-    """Depth images with ``curriculum.free_space_weight`` > 0: a function (cameras (H, 4, 4), the new
-    scan's points and validity) -> (H,) that charges the new view's points lying in front of what
-    the placed predecessor saw (seen_free), and the predecessor's points in front of what the new
-    view sees; None otherwise (and for images that are not a pinhole's: fit_pinhole)."""
+    """With ``curriculum.free_space_weight`` > 0: a function (poses as ``transform`` takes them (H, ...),
+    the new scan's points and validity) -> (H,) that charges the new scan's points lying in front of
+    what the placed predecessor saw (depth images: seen_free; 2D scans: seen_free_2d), and the
+    predecessor's points in front of what the new scan sees; None otherwise, and for scans whose
+    sensor no model fits (fit_pinhole, fit_polar)."""
     cfg, model = trainer.cfg.curriculum, trainer.model
-    grid = model.lnet.grid_shape
-    if cfg.free_space_weight == 0 or not model.is_3d or grid is None:
+    grid = model.lnet.grid_shape if model.is_3d else (model.scans.shape[1],)
+    if cfg.free_space_weight == 0 or grid is None:
         return None
-    if trainer.pinhole is None:
-        trainer.pinhole = fit_pinhole(model.scans, trainer.valid, grid) or ()
-    if not trainer.pinhole:
+    if trainer.sensor is None:
+        fit = fit_pinhole(model.scans, trainer.valid, grid) if model.is_3d else fit_polar(model.scans, trainer.valid)
+        trainer.sensor = fit or ()
+    if not trainer.sensor:
         return None
     prev_cam = candidate_poses(model, prev[None])
     tol = cfg.free_space_tolerance * median_range
-    prev_free = free_depth(model.scans[j - 1][:, 2], trainer.valid[j - 1], grid)
-    new_free = free_depth(model.scans[j][:, 2], trainer.valid[j], grid)
+
+    def depth(k: int) -> torch.Tensor:  # along the optical axis (depth images), or the range (2D)
+        return model.scans[k][:, 2] if model.is_3d else model.scans[k].norm(dim=1)
+
+    prev_free = free_depth(depth(j - 1), trainer.valid[j - 1], grid)
+    new_free = free_depth(depth(j), trainer.valid[j], grid)
+
+    def seen(pts: torch.Tensor, pv: torch.Tensor, cams: torch.Tensor, free: torch.Tensor) -> torch.Tensor:
+        if model.is_3d:
+            return seen_free(pts, pv, cams, free, trainer.sensor, grid, tol, cfg.free_space_ramp)
+        return seen_free_2d(pts, pv, cams, free, trainer.sensor, tol, cfg.free_space_ramp)
 
     def check(cams: torch.Tensor, on: tuple) -> torch.Tensor:
         h = len(cams)
         placed = transform(cams, on[0][None].expand(h, -1, -1))
-        there = seen_free(placed, on[1], prev_cam.expand(h, -1, -1), prev_free, trainer.pinhole, grid, tol)
-        back = seen_free(prev_glob[0][None].expand(h, -1, -1), prev_glob[1], cams, new_free, trainer.pinhole,
-                         grid, tol)
+        there = seen(placed, on[1], prev_cam.expand(h, *prev_cam.shape[1:]), prev_free)
+        back = seen(prev_glob[0][None].expand(h, -1, -1), prev_glob[1], cams, new_free)
         return cfg.free_space_weight * (there + back)
 
     return check

@@ -71,7 +71,7 @@ class Trainer:
     def __init__(self, cfg: Config, model: DeepMappingModel, valid: torch.Tensor, ordered: bool,
                  evaluate: Callable[[np.ndarray], float | None] | None = None):
         self.cfg, self.model, self.valid = cfg, model, valid
-        self.pinhole: tuple | None = None  # curriculum cache: fitted (fx, cx, fy, cy); () = no pinhole fits
+        self.sensor: tuple | None = None  # curriculum cache: the fitted pinhole or polar beams; () = none fits
         self.use_chamfer = ordered and cfg.loss.chamfer_weight > 0
         self.evaluate = evaluate
         self.device = valid.device
