@@ -174,12 +174,12 @@ def fit_polar(scans: torch.Tensor, valid: torch.Tensor) -> tuple[float, float] |
         return None
     bearing = np.arctan2(p[s, j, 1], p[s, j, 0])
     same = s[1:] == s[:-1]
-    steps = (np.angle(np.exp(1j * np.diff(bearing))) / np.maximum(np.diff(j), 1))[same]
+    steps = (se2.wrap_angle(np.diff(bearing)) / np.maximum(np.diff(j), 1))[same]
     if len(steps) == 0 or abs(float(np.median(steps))) < 1e-9:
         return None
     inc = float(np.median(steps))
     start = float(np.angle(np.exp(1j * (bearing - inc * j)).mean()))
-    resid = np.angle(np.exp(1j * (bearing - inc * j - start)))
+    resid = se2.wrap_angle(bearing - inc * j - start)
     if np.sqrt(np.mean(resid ** 2)) > 0.5 * abs(inc):
         return None
     return start, inc
