@@ -258,6 +258,7 @@ def test_curriculum_runs_on_planar_3d_cold_starts_and_is_refused_for_6dof():
                                                "curriculum.steps": 3})
     c = cfg.curriculum  # the depth-image ranking: truncated Chamfer + free space, a wide search at every image
     assert c.select_truncate > 0 and c.free_space_weight > 0 and c.wide_hypotheses > 0 and c.wide_trigger == 0
+    assert c.free_space_trigger == 0  # every image: AVD-like motions are large turns
     res = register(scans, cfg)  # auto: on for a cold start of planar (AVD-like) depth images
     assert res.placements is not None and np.allclose(res.placements[:, 1, 3], 0.0, atol=1e-4)
     assert np.isfinite(res.metrics["ate"])
@@ -438,6 +439,20 @@ def test_the_curriculum_checks_free_space_on_2d_scans_when_weighted(weight, hard
                                    "curriculum.free_space_weight": weight}))
     assert res.placements is not None and np.all(np.isfinite(res.placements))
     assert (len(calls) > 0) == (weight > 0)
+
+
+@pytest.mark.parametrize("trigger", [0.0, 1e6])
+def test_slow_sequences_skip_the_free_space_check(trigger, hard_trajectory, monkeypatch):
+    from deepmapping.api import register
+    from deepmapping.solver import curriculum
+
+    checked = []
+    plain = curriculum.free_space_check
+    monkeypatch.setattr(curriculum, "free_space_check", lambda t, j, *a: checked.append(j) or plain(t, j, *a))
+    register(hard_trajectory, _cold(**{"optim.epochs": 1, "curriculum.steps": 2, "curriculum.wide_hypotheses": 64,
+                                       "curriculum.free_space_trigger": trigger, "curriculum.free_space_weight": 1.0}))
+    n = len(hard_trajectory.points)
+    assert checked == (list(range(1, n)) if trigger == 0 else [1])  # motions below the trigger: the second scan only
 
 
 def test_the_free_space_charge_rises_over_the_ramp():

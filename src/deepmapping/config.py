@@ -180,8 +180,11 @@ class CurriculumConfig(_Section):
     # + free_space_weight x how far the new scan's points lie in front of what the predecessor saw
     # along its pixels (2D: beams), and back (eq. 4's free-space labels from the two scans
     # themselves, not the M-Net): per point 0 within free_space_tolerance x the scan's median
-    # range, rising to 1 at (1 + free_space_ramp) x that tolerance
+    # range, rising to 1 at (1 + free_space_ramp) x that tolerance.
+    # It runs for the second scan, and for later ones when the median motion between the placed
+    # scans exceeds free_space_trigger x the rounds' spread (as wide_trigger)
     free_space_weight: float = Field(0.0, ge=0)
+    free_space_trigger: float = Field(1.0, ge=0)
     free_space_tolerance: float = Field(0.05, gt=0)
     free_space_ramp: float = Field(1.0, gt=0)
     log_every: int = Field(8, ge=1)  # log (loss, ATE) every N stages
@@ -325,7 +328,8 @@ PROFILES: dict[str, dict] = {
         # (docs/method.md, "Cold start on depth images")
         "curriculum": {"select_truncate": 0.05, "max_shift": 0.03, "free_space_weight": 3.0,
                        "wide_hypotheses": 3500, "wide_shift": 0.5, "wide_turn_deg": 45.0, "wide_points": 128,
-                       "wide_keep": 16, "wide_refine": 16, "wide_trigger": 0.0, "wide_bce_weight": 0.0},
+                       "wide_keep": 16, "wide_refine": 16, "wide_trigger": 0.0, "wide_bce_weight": 0.0,
+                       "free_space_trigger": 0.0},
     },
 }
 

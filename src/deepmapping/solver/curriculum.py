@@ -336,7 +336,11 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
     else:
         ch_weight, truncate = trainer.cfg.loss.chamfer_weight, None
 
-    free_check = free_space_check(trainer, j, prev, prev_glob, median_range)
+    turn = math.radians(cfg.max_turn_deg)
+    wide = cfg.wide_hypotheses > 0 and wide_needed(model, j, cfg.wide_trigger * shift, cfg.wide_trigger * turn)
+    free_check = None  # slow sequences skip the free-space check: there it moves scans off their place
+    if wide_needed(model, j, cfg.free_space_trigger * shift, cfg.free_space_trigger * turn):
+        free_check = free_space_check(trainer, j, prev, prev_glob, median_range)
 
     def score(c, on=pts, bce_weight=cfg.select_bce_weight) -> torch.Tensor:
         cams = candidate_poses(model, c)
@@ -350,9 +354,8 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
     def wide_score(c, on=pts) -> torch.Tensor:  # the wide search's ranking: its screen and refinement
         return score(c, on, wide_bce)
 
-    turn = math.radians(cfg.max_turn_deg)
     seeds = None
-    if cfg.wide_hypotheses > 0 and wide_needed(model, j, cfg.wide_trigger * shift, cfg.wide_trigger * turn):
+    if wide:
         few = selection_points(model, trainer.valid, j, cfg.wide_points)
         seeds = wide_search(lambda c: wide_score(c, few), centres[[0, half % h]], cfg.wide_hypotheses,
                             cfg.wide_shift * median_range, math.radians(cfg.wide_turn_deg), cfg.wide_keep,
