@@ -164,13 +164,13 @@ class CurriculumConfig(_Section):
     # rounds' choice where their loss is lower (larger motions: every 8th scan and beyond).
     # It runs for the second scan, and for later ones when the median motion between the placed
     # scans exceeds wide_trigger x the rounds' spread (max_shift, max_turn_deg): slow sequences skip it
-    wide_hypotheses: int = Field(1024, ge=0)  # 0: off
+    wide_hypotheses: int = Field(2048, ge=0)  # 0: off
     wide_trigger: float = Field(0.5, ge=0)
-    wide_shift: float = Field(0.75, ge=0)
-    wide_turn_deg: float = Field(90.0, ge=0, le=180)
+    wide_shift: float = Field(1.5, ge=0)
+    wide_turn_deg: float = Field(120.0, ge=0, le=180)
     wide_points: int = Field(16, ge=8)
-    wide_keep: int = Field(16, ge=1)
-    wide_refine: int = Field(8, ge=1)
+    wide_keep: int = Field(64, ge=1)
+    wide_refine: int = Field(32, ge=1)
     # the wide search's screen ranks by wide_bce_weight x eq. 4 + the Chamfer term (None: as
     # select_bce_weight; 0: Chamfer only, the M-Net not evaluated: fast on dense scans); its refined
     # best replaces the rounds' choice only if its loss is lower by more than wide_margin x theirs
@@ -183,10 +183,10 @@ class CurriculumConfig(_Section):
     # range, rising to 1 at (1 + free_space_ramp) x that tolerance.
     # It runs for the second scan, and for later ones when the median motion between the placed
     # scans exceeds free_space_trigger x the rounds' spread (as wide_trigger)
-    free_space_weight: float = Field(0.0, ge=0)
+    free_space_weight: float = Field(3.0, ge=0)  # 0: off
     free_space_trigger: float = Field(1.0, ge=0)
     free_space_tolerance: float = Field(0.05, gt=0)
-    free_space_ramp: float = Field(1.0, gt=0)
+    free_space_ramp: float = Field(10.0, gt=0)
     log_every: int = Field(8, ge=1)  # log (loss, ATE) every N stages
 
 
@@ -329,7 +329,7 @@ PROFILES: dict[str, dict] = {
         "curriculum": {"select_truncate": 0.05, "max_shift": 0.03, "free_space_weight": 3.0,
                        "wide_hypotheses": 3500, "wide_shift": 0.5, "wide_turn_deg": 45.0, "wide_points": 128,
                        "wide_keep": 16, "wide_refine": 16, "wide_trigger": 0.0, "wide_bce_weight": 0.0,
-                       "free_space_trigger": 0.0},
+                       "free_space_trigger": 0.0, "free_space_ramp": 1.0},
     },
 }
 
