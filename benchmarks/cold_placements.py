@@ -70,9 +70,8 @@ def explain_placements(gt: np.ndarray, unit: float, log: list, first_scan: np.nd
             eq4 = cur.candidate_losses(model, pts, j, both, prev_glob, 0.0)  # eq. 4 alone, weight 1
             ch = cur.candidate_losses(model, pts, j, both, prev_glob, 1.0, 0.0)  # Chamfer alone, weight 1
             mr = float(pts[0][pts[1]].norm(dim=1).median())
-            gated = cur.wide_needed(model, j, cfg.free_space_trigger * cfg.max_shift * mr,
-                                    cfg.free_space_trigger * np.radians(cfg.max_turn_deg))
-            check = cur.free_space_check(trainer, j, prev, prev_glob, mr) if gated else None  # as ranked
+            ranked = cur.triggered(model, j, cfg, mr)[1]  # the check as the ranking used it
+            check = cur.free_space_check(trainer, j, prev, prev_glob, mr) if ranked else None
             fs = check(both, pts) if check is not None else torch.zeros(2)  # weighted, as ranked
             loss = loss + fs
         log.append((j, unit * float(np.hypot(err[0], err[1])), float(np.degrees(abs(err[2]))),

@@ -77,14 +77,21 @@ def placements(model, n: int) -> np.ndarray:
         return _se2_of(model.poses(torch.arange(n, device=model.scans.device)).double()).cpu().numpy()
 
 
-def wide_needed(model, j: int, shift: float, turn: float) -> bool:
-    """Whether scan j gets the wide search: the second scan (no motion known yet), or the median
-    shift or turn (radians) between the placements of scans 0..j-1 above ``shift`` / ``turn``."""
+def triggered(model, j: int, cfg, median_range: float) -> tuple[bool, bool]:
+    """Whether scan j gets (the wide search, the free-space check): both for the second scan (no
+    motion known yet); for later ones, each when the median shift or turn between the placements
+    of scans 0..j-1 exceeds its trigger (``wide_trigger``, ``free_space_trigger``) x the rounds'
+    spread (``max_shift`` x ``median_range``, ``max_turn_deg``): slow sequences skip them."""
     if j < 2:
-        return j == 1
-    p = placements(model, j)
+        return j == 1 and cfg.wide_hypotheses > 0, j == 1
+    p = placements(model, j)  # once: both triggers read the same motions
     m = se2.relative(p[:-1], p[1:])
-    return bool(np.median(np.hypot(m[:, 0], m[:, 1])) > shift or np.median(np.abs(m[:, 2])) > turn)
+    shift, turn = float(np.median(np.hypot(m[:, 0], m[:, 1]))), float(np.median(np.abs(m[:, 2])))
+
+    def above(trigger: float) -> bool:
+        return shift > trigger * (cfg.max_shift * median_range) or turn > trigger * math.radians(cfg.max_turn_deg)
+
+    return cfg.wide_hypotheses > 0 and above(cfg.wide_trigger), above(cfg.free_space_trigger)
 
 
 def candidate_poses(model, cands) -> torch.Tensor:
@@ -336,11 +343,8 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
     else:
         ch_weight, truncate = trainer.cfg.loss.chamfer_weight, None
 
-    turn = math.radians(cfg.max_turn_deg)
-    wide = cfg.wide_hypotheses > 0 and wide_needed(model, j, cfg.wide_trigger * shift, cfg.wide_trigger * turn)
-    free_check = None  # slow sequences skip the free-space check: there it moves scans off their place
-    if wide_needed(model, j, cfg.free_space_trigger * shift, cfg.free_space_trigger * turn):
-        free_check = free_space_check(trainer, j, prev, prev_glob, median_range)
+    wide, check_free = triggered(model, j, cfg, median_range)  # slow sequences skip both
+    free_check = free_space_check(trainer, j, prev, prev_glob, median_range) if check_free else None
 
     def score(c, on=pts, bce_weight=cfg.select_bce_weight) -> torch.Tensor:
         cams = candidate_poses(model, c)
@@ -354,6 +358,7 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
     def wide_score(c, on=pts) -> torch.Tensor:  # the wide search's ranking: its screen and refinement
         return score(c, on, wide_bce)
 
+    turn = math.radians(cfg.max_turn_deg)
     seeds = None
     if wide:
         few = selection_points(model, trainer.valid, j, cfg.wide_points)
