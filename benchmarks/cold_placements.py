@@ -74,9 +74,11 @@ def explain_placements(gt: np.ndarray, unit: float, log: list, first_scan: np.nd
             check = cur.free_space_check(trainer, j, prev, prev_glob, mr) if ranked else None
             fs = check(both, pts) if check is not None else torch.zeros(2)  # weighted, as ranked
             loss = loss + fs
+        last = se2.relative(cur.placement(model, j - 2), prev) if j >= 2 else np.zeros(3)
+        reach = min(np.hypot(*motion[:2]), np.hypot(*se2.relative(se2.compose(prev, last), truth)[:2])) / mr
         log.append((j, unit * float(np.hypot(err[0], err[1])), float(np.degrees(abs(err[2]))),
                     float(loss[0]), float(loss[1]), float(eq4[0]), float(eq4[1]), float(ch[0]), float(ch[1]),
-                    float(fs[0]), float(fs[1])))
+                    float(fs[0]), float(fs[1]), reach, float(np.degrees(abs(motion[2])))))
 
     place.plain = plain
     cur.place_new_scan = place
@@ -100,10 +102,12 @@ def robustness(trajectories: list[int], stride: int, extra: dict, why: bool = Fa
         placed.append(float(evaluate_poses(s, r.placements)["ate"]))
         print(f"trajectory {t} stride {stride}: placed ATE {placed[-1]:.1f} px ({time.perf_counter() - t0:.0f} s)",
               flush=True)
-        for j, px, deg, chosen, true, b0, b1, c0, c1, f0, f1 in [e for e in log if e[1] > 20 or e[2] > 10][:3]:
+        off = [e for e in log if e[1] > 20 or e[2] > 10][:3]
+        for j, px, deg, chosen, true, b0, b1, c0, c1, f0, f1, reach, turn in off:
             cause = "search (the truth is lower)" if true < chosen else "criterion (the truth is higher)"
             print(f"  scan {j}: {px:.1f} px / {deg:.1f} deg off, loss {chosen:.3f} vs truth {true:.3f}: {cause}; "
-                  f"eq. 4 {b0:.3f} vs {b1:.3f}, Chamfer {c0:.4f} vs {c1:.4f}, free space {f0:.3f} vs {f1:.3f}")
+                  f"eq. 4 {b0:.3f} vs {b1:.3f}, Chamfer {c0:.4f} vs {c1:.4f}, free space {f0:.3f} vs {f1:.3f}; "
+                  f"the truth {reach:.2f} median ranges from the nearer centre, turned {turn:.0f} deg")
     print(f"below 20 px: {sum(a < 20 for a in placed)} of {len(placed)}")
 
 
