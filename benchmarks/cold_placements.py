@@ -37,7 +37,8 @@ def explain_placements(gt: np.ndarray, unit: float, log: list, first_scan: np.nd
     """Wrap curriculum.place_new_scan: after each placement, append (scan, error px, error deg,
     loss of the chosen placement, loss of the true one relative to the placed predecessor, then
     eq. 4 alone, the Chamfer distance alone and the weighted free-space check (0 when off), each for
-    the chosen and the true placement).
+    the chosen and the true placement; then how far the truth lies from the nearer of the search's
+    two centres, in the new scan's median ranges, and how far it turned, in degrees).
     Placements live in the model's normalized frame (points / frame scale); ``first_scan`` (the
     valid points of scan 0 in the data's units) gives that scale, so the true motion is taken to
     the same units before it is compared."""
