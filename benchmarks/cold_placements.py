@@ -75,8 +75,8 @@ def explain_placements(gt: np.ndarray, unit: float, log: list, first_scan: np.nd
             check = cur.free_space_check(trainer, j, prev, prev_glob, mr) if ranked else None
             fs = check(both, pts) if check is not None else torch.zeros(2)  # weighted, as ranked
             loss = loss + fs
-        last = se2.relative(cur.placement(model, j - 2), prev) if j >= 2 else np.zeros(3)
-        reach = min(np.hypot(*motion[:2]), np.hypot(*se2.relative(se2.compose(prev, last), truth)[:2])) / mr
+        ahead = se2.compose(prev, cur.last_motion(model, j))  # the search's second centre
+        reach = min(np.hypot(*motion[:2]), np.hypot(*se2.relative(ahead, truth)[:2])) / mr
         log.append((j, unit * float(np.hypot(err[0], err[1])), float(np.degrees(abs(err[2]))),
                     float(loss[0]), float(loss[1]), float(eq4[0]), float(eq4[1]), float(ch[0]), float(ch[1]),
                     float(fs[0]), float(fs[1]), reach, float(np.degrees(abs(motion[2])))))

@@ -77,6 +77,12 @@ def placements(model, n: int) -> np.ndarray:
         return _se2_of(model.poses(torch.arange(n, device=model.scans.device)).double()).cpu().numpy()
 
 
+def last_motion(model, j: int) -> np.ndarray:
+    """The motion from scan j-2's placement to scan j-1's (zero before two scans are placed): the
+    constant-velocity guess that moves scan j's second search centre on from its predecessor."""
+    return se2.relative(placement(model, j - 2), placement(model, j - 1)) if j >= 2 else np.zeros(3)
+
+
 def triggered(model, j: int, cfg, median_range: float) -> tuple[bool, bool]:
     """Whether scan j gets (the wide search, the free-space check): both for the second scan (no
     motion known yet); for later ones, each when the median shift or turn between the placements
@@ -327,7 +333,7 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
     if j == 0:
         return
     prev = placement(model, j - 1)
-    motion = se2.relative(placement(model, j - 2), prev) if j >= 2 else np.zeros(3)
+    motion = last_motion(model, j)
     rng = np.random.default_rng([trainer.cfg.seed, j])
     h, half = cfg.hypotheses, (cfg.hypotheses + 1) // 2
     centres = np.where(np.arange(h)[:, None] < half, se2.compose(prev, motion), prev)
