@@ -465,3 +465,33 @@ def test_the_free_space_charge_rises_over_the_ramp():
     one, here = torch.ones(1, dtype=torch.bool), torch.zeros(1, 3, dtype=torch.float64)
     for ramp, want in ((1.0, 0.5), (10.0, 0.05), (0.25, 1.0)):
         assert float(seen_free_2d(p, one, here, free, polar, 0.1, ramp)) == pytest.approx(want, rel=1e-6)
+
+
+@pytest.mark.parametrize("small", [0, 48])
+def test_the_wide_search_runs_smaller_where_the_free_space_check_does_not(small, hard_trajectory, monkeypatch):
+    """The full wide search where the free-space check runs too (the larger motions; here the
+    second scan only), the small one elsewhere; small_wide_hypotheses 0: the full one everywhere."""
+    from deepmapping.api import register
+    from deepmapping.solver import curriculum
+
+    sizes = []
+    plain = curriculum.wide_search
+    monkeypatch.setattr(curriculum, "wide_search",
+                        lambda s, c, h, radius, turn, keep, *a, **k: sizes.append((h, keep)) or
+                        plain(s, c, h, radius, turn, keep, *a, **k))
+    register(hard_trajectory, _cold(**{"optim.epochs": 1, "curriculum.steps": 2, "curriculum.wide_hypotheses": 64,
+                                       "curriculum.wide_keep": 8, "curriculum.wide_trigger": 0.0,
+                                       "curriculum.free_space_trigger": 1e6, "curriculum.small_wide_hypotheses": small,
+                                       "curriculum.small_wide_keep": 4}))
+    n = len(hard_trajectory.points)
+    assert sizes == [(64, 8)] + [(64, 8) if small == 0 else (48, 4)] * (n - 2)
+
+
+def test_the_3d_profile_keeps_one_wide_search_size():
+    from deepmapping.solver.curriculum import wide_size
+
+    cfg = load_config("default-3d").curriculum
+    assert wide_size(cfg, False) == wide_size(cfg, True) == (cfg.wide_hypotheses, cfg.wide_shift, cfg.wide_turn_deg,
+                                                              cfg.wide_keep, cfg.wide_refine)
+    two = load_config("cold").curriculum
+    assert wide_size(two, False)[0] == two.small_wide_hypotheses < wide_size(two, True)[0]

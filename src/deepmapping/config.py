@@ -177,6 +177,15 @@ class CurriculumConfig(_Section):
     wide_bce_weight: float | None = Field(None, ge=0)
     wide_margin: float = Field(0.0, ge=0)
     wide_heading_only: bool = False  # True: take only its heading, the position from the rounds
+    # where the wide search runs but the free-space check does not (the smaller motions), it runs
+    # smaller: small_wide_hypotheses within small_wide_shift x the median range and
+    # +- small_wide_turn_deg, the small_wide_refine best of its small_wide_keep refined
+    # (0 hypotheses: the full size wherever it runs)
+    small_wide_hypotheses: int = Field(1024, ge=0)
+    small_wide_shift: float = Field(0.75, ge=0)
+    small_wide_turn_deg: float = Field(90.0, ge=0, le=180)
+    small_wide_keep: int = Field(16, ge=1)
+    small_wide_refine: int = Field(8, ge=1)
     # + free_space_weight x how far the new scan's points lie in front of what the predecessor saw
     # along its pixels (2D: beams), and back (eq. 4's free-space labels from the two scans
     # themselves, not the M-Net): per point 0 within free_space_tolerance x the scan's median
@@ -329,7 +338,8 @@ PROFILES: dict[str, dict] = {
         "curriculum": {"select_truncate": 0.05, "max_shift": 0.03, "free_space_weight": 3.0,
                        "wide_hypotheses": 3500, "wide_shift": 0.5, "wide_turn_deg": 45.0, "wide_points": 128,
                        "wide_keep": 16, "wide_refine": 16, "wide_trigger": 0.0, "wide_bce_weight": 0.0,
-                       "free_space_trigger": 0.0, "free_space_ramp": 1.0},
+                       "free_space_trigger": 0.0, "free_space_ramp": 1.0,
+                       "small_wide_hypotheses": 0},
     },
 }
 

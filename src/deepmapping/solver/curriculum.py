@@ -100,6 +100,16 @@ def triggered(model, j: int, cfg, median_range: float) -> tuple[bool, bool]:
     return cfg.wide_hypotheses > 0 and above(cfg.wide_trigger), above(cfg.free_space_trigger)
 
 
+def wide_size(cfg, full: bool) -> tuple[int, float, float, int, int]:
+    """The wide search's (hypotheses, shift in median ranges, turn in degrees, keep, refine): the
+    full size where the free-space check runs too (``full``: the larger motions), the small one
+    (``small_wide_*``) elsewhere, unless ``small_wide_hypotheses`` is 0."""
+    if full or cfg.small_wide_hypotheses == 0:
+        return cfg.wide_hypotheses, cfg.wide_shift, cfg.wide_turn_deg, cfg.wide_keep, cfg.wide_refine
+    return (cfg.small_wide_hypotheses, cfg.small_wide_shift, cfg.small_wide_turn_deg, cfg.small_wide_keep,
+            cfg.small_wide_refine)
+
+
 def candidate_poses(model, cands) -> torch.Tensor:
     """Planar poses (H, 3) -> what ``transform`` takes: (H, 3) in 2D, (H, 4, 4) in 3D."""
     t = torch.as_tensor(cands, dtype=model.scans.dtype, device=model.scans.device)
@@ -368,8 +378,9 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
     seeds = None
     if wide:
         few = selection_points(model, trainer.valid, j, cfg.wide_points)
-        seeds = wide_search(lambda c: wide_score(c, few), centres[[0, half % h]], cfg.wide_hypotheses,
-                            cfg.wide_shift * median_range, math.radians(cfg.wide_turn_deg), cfg.wide_keep,
+        hyp, reach, wide_turn, wide_keep, wide_refine = wide_size(cfg, check_free)
+        seeds = wide_search(lambda c: wide_score(c, few), centres[[0, half % h]], hyp, reach * median_range,
+                            math.radians(wide_turn), wide_keep,
                             np.random.default_rng([trainer.cfg.seed, j, 1]),  # the rounds draw as without it
                             points=len(few[0]))
     best, best_loss = None, math.inf
@@ -393,7 +404,7 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
         best = refine(score, np.concatenate(seen_c), torch.cat(seen_l), cfg.refine_top, cfg.refine_steps,
                       cfg.refine_lr, model.scans.dtype)
     if seeds is not None:  # the wide search's seeds, refined apart, replace the rounds' best if lower (prefer_wide)
-        far = refine(wide_score, seeds, wide_score(seeds), cfg.wide_refine, cfg.refine_steps, cfg.refine_lr,
+        far = refine(wide_score, seeds, wide_score(seeds), wide_refine, cfg.refine_steps, cfg.refine_lr,
                      model.scans.dtype)
         best = prefer_wide(best, far, score(np.stack([best, far])), cfg.wide_margin, cfg.wide_heading_only)
     set_placement(model, range(j, model.scans.shape[0]), best)  # unplaced scans wait there too
