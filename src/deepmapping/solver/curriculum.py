@@ -367,6 +367,8 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
         loss = candidate_losses(model, on, j, cams, prev_glob, ch_weight, bce_weight, truncate=truncate)
         if free_check is not None:
             loss = loss + free_check(cams, on)
+        if check_free and cfg.turn_prior > 0 and not model.is_3d:
+            loss = loss + cfg.turn_prior * (1 - torch.cos(cams[:, 2] - float(prev[2]))) / 2
         return loss
 
     wide_bce = cfg.select_bce_weight if cfg.wide_bce_weight is None else cfg.wide_bce_weight
