@@ -193,12 +193,12 @@ class CurriculumConfig(_Section):
     # It runs for the second scan, and for later ones when the median motion between the placed
     # scans exceeds free_space_trigger x the rounds' spread (as wide_trigger)
     free_space_weight: float = Field(3.0, ge=0)  # 0: off
-    # 2D, where the free-space check runs: + turn_prior x (1 - cos(turn from the predecessor)) / 2, so
-    # a corridor scan turned 180 deg onto its predecessor does not outrank the truth (0: off)
-    turn_prior: float = Field(0.0, ge=0)
     free_space_trigger: float = Field(1.0, ge=0)
     free_space_tolerance: float = Field(0.05, gt=0)
     free_space_ramp: float = Field(10.0, gt=0)
+    # 2D, where the free-space check runs: + turn_prior x (1 - cos(turn from the predecessor)) / 2, so
+    # a corridor scan turned 180 deg onto its predecessor does not outrank the truth (0: off)
+    turn_prior: float = Field(0.0, ge=0)
     log_every: int = Field(8, ge=1)  # log (loss, ATE) every N stages
 
 
