@@ -497,11 +497,12 @@ def test_the_3d_profile_keeps_one_wide_search_size():
     assert wide_size(two, False)[0] == two.small_wide_hypotheses < wide_size(two, True)[0]
 
 
-@pytest.mark.parametrize("prior", [0.0, 0.3])
+@pytest.mark.parametrize("prior", [0.0, 0.3, None])
 def test_the_turn_prior_stops_a_scan_turned_round_onto_its_predecessor(prior, hard_trajectory, monkeypatch):
     """A ranking that prefers the second scan turned 180 deg (a corridor folded back onto its
     predecessor) places it so; with curriculum.turn_prior (charged where the free-space check
-    runs: the second scan) the unturned placement wins."""
+    runs: the second scan; None: the cold profile's default, which has it on) the unturned
+    placement wins."""
     from deepmapping.solver import curriculum
     from deepmapping.solver.model import DeepMappingModel
     from deepmapping.solver.trainer import Trainer
@@ -511,10 +512,11 @@ def test_the_turn_prior_stops_a_scan_turned_round_onto_its_predecessor(prior, ha
                         lambda model, pts, j, cams, *a, **k: 0.1 * (1 + torch.cos(cams[:, 2])) / 2)
     scans = hard_trajectory
     pts, valid = torch.as_tensor(scans.points[:2], dtype=torch.float32), torch.as_tensor(scans.valid[:2])
-    cfg = _cold(**{"curriculum.turn_prior": prior, "curriculum.wide_hypotheses": 256})
+    over = {"curriculum.wide_hypotheses": 256} | ({} if prior is None else {"curriculum.turn_prior": prior})
+    cfg = _cold(**over)
     model = DeepMappingModel(cfg, pts, torch.zeros(2, 3), valid=valid)
     trainer = Trainer(cfg, model, valid, ordered=True)
     model.make_direct()
     curriculum.place_new_scan(trainer, 1)
     turn = abs(np.degrees(se2.relative(curriculum.placement(model, 0), curriculum.placement(model, 1))[2]))
-    assert (turn < 20.0) if prior > 0 else (turn > 100.0), turn
+    assert (turn < 20.0) if prior != 0 else (turn > 100.0), turn

@@ -198,7 +198,7 @@ class CurriculumConfig(_Section):
     free_space_ramp: float = Field(10.0, gt=0)
     # 2D, where the free-space check runs: + turn_prior x (1 - cos(turn from the predecessor)) / 2, so
     # a corridor scan turned 180 deg onto its predecessor does not outrank the truth (0: off)
-    turn_prior: float = Field(0.0, ge=0)
+    turn_prior: float = Field(0.3, ge=0)
     log_every: int = Field(8, ge=1)  # log (loss, ATE) every N stages
 
 
