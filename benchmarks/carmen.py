@@ -11,7 +11,7 @@ translational (m) and rotational (deg) errors, mean ± std and median, split at 
 methods: ``odometry`` (the log's poses), ``icp`` (incremental point-to-point ICP, each pair
 started from odometry), ``dm-odometry`` / ``dm-icp`` (DeepMapping, default profile, warm-started
 from odometry / from that ICP), ``loop-closure`` (incremental ICP with loop closures and
-pose-graph optimization, core.loop_closure), ``dm-loop-closure`` (DeepMapping warm-started from
+pose-graph optimization, methods.loop_closure), ``dm-loop-closure`` (DeepMapping warm-started from
 it), and ``reference``: the corrected trajectory shipped with the
 benchmark (``corrected/<name>-corrected.log.gz``), matched to the raw scans by their ranges.
 Each run is its own process (one at a time, ``--threads`` torch threads): its wall time and peak
@@ -89,7 +89,7 @@ def _register(data: Path, log: str, name: str, keyframes: str, sets: dict, threa
 def _on_reference(data: Path, log: str, scans, poses) -> dict:
     """The errors on the relations the corrected reference covers (both scans in the corrected
     log): the like-for-like comparison with the reference row (intel: 90 of 2984)."""
-    from deepmapping.core.relations import Relations, read_relations, score_relations
+    from deepmapping.evaluation.relations import Relations, read_relations, score_relations
     from deepmapping.io.carmen import match_scans, read_carmen
 
     raw = read_carmen(log_file(data, log))
@@ -104,7 +104,7 @@ def _on_reference(data: Path, log: str, scans, poses) -> dict:
 
 
 def _reference(data: Path, log: str) -> dict:
-    from deepmapping.core.relations import read_relations, score_relations
+    from deepmapping.evaluation.relations import read_relations, score_relations
     from deepmapping.io.carmen import match_scans, read_carmen
 
     raw = read_carmen(log_file(data, log))

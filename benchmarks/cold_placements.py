@@ -42,7 +42,7 @@ def explain_placements(gt: np.ndarray, unit: float, log: list, first_scan: np.nd
     Placements live in the model's normalized frame (points / frame scale); ``first_scan`` (the
     valid points of scan 0 in the data's units) gives that scale, so the true motion is taken to
     the same units before it is compared."""
-    from deepmapping.core import se2
+    from deepmapping.geometry import se2
     from deepmapping.solver import curriculum as cur
 
     plain = getattr(cur.place_new_scan, "plain", cur.place_new_scan)

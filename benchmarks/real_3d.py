@@ -39,7 +39,7 @@ BUNNY_SETTINGS = {"lnet.pivot": "centroid", "lnet.pointnet_lr_factor": 0.02, "lo
 def coarse_start(scans, deg: float = 10.0, mm: float = 10.0, seed: int = 0) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
-    from deepmapping.core import se3
+    from deepmapping.geometry import se3
     from deepmapping.io.bunny import scan_centroids
 
     rng = np.random.default_rng(seed)
@@ -62,7 +62,7 @@ def register_from(scans, init: np.ndarray, overrides: dict) -> tuple[np.ndarray,
 
 
 def relative_errors(est, ref, unit_scale: float) -> list[dict]:
-    from deepmapping.core import se3
+    from deepmapping.geometry import se3
 
     out = []
     for i in range(1, len(ref)):

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from deepmapping.core import se3
-from deepmapping.core.icp3d import incremental_icp_3d
-from deepmapping.core.metrics3d import ate_3d
-from deepmapping.core.multiway import build_pose_graph, edge_pairs, multiway_registration
-from deepmapping.core.open3d_utils import require_open3d, to_pcd
+from deepmapping.geometry import se3
+from deepmapping.methods.icp3d import incremental_icp_3d
+from deepmapping.evaluation.metrics3d import ate_3d
+from deepmapping.methods.multiway import build_pose_graph, edge_pairs, multiway_registration
+from deepmapping.methods.open3d_utils import require_open3d, to_pcd
 from deepmapping.errors import ConfigError, InputError
 
 K = 5
@@ -192,7 +192,7 @@ def test_multiway_starts_odometry_pairs_where_the_previous_scan_is(scans, monkey
     """Without init, the odometry pair (i, i+1) starts from the identity, as incremental ICP: scan i+1
     is not placed yet. (It started from scan i's whole pose, and a long sequence drifted off: 7-Scenes
     multiway 226 mm, no registration 60 mm.) Loop-closure pairs start from the chained poses."""
-    import deepmapping.core.multiway as mw
+    import deepmapping.methods.multiway as mw
 
     clouds, gt = scans
     guesses = {}
@@ -217,7 +217,7 @@ def test_multiway_starts_odometry_pairs_where_the_previous_scan_is(scans, monkey
 def test_default_scales_do_not_go_below_the_point_spacing(scans):
     """Sparse scans (few points, e.g. a room at 40 x 30 pixels): the voxel is at least the median
     nearest-neighbour distance, else the normals' radius holds no neighbour; dense ones keep d / 100."""
-    from deepmapping.core.icp3d import default_scales, point_spacing
+    from deepmapping.methods.icp3d import default_scales, point_spacing
 
     clouds, _ = scans
     dense = default_scales(clouds)
@@ -231,7 +231,7 @@ def test_default_scales_do_not_go_below_the_point_spacing(scans):
 
 
 def test_kiss_icp_odometry_recovers_ground_truth_and_anchors_pose_0(scans):
-    from deepmapping.core.kiss_odometry import kiss_config, kiss_icp_poses
+    from deepmapping.methods.kiss_odometry import kiss_config, kiss_icp_poses
 
     clouds, gt = scans
     cfg = kiss_config(clouds)
@@ -247,7 +247,7 @@ def test_kiss_icp_odometry_recovers_ground_truth_and_anchors_pose_0(scans):
 
 
 def test_kiss_icp_bad_scan_names_its_index(scans):
-    from deepmapping.core.kiss_odometry import kiss_icp_poses
+    from deepmapping.methods.kiss_odometry import kiss_icp_poses
 
     clouds = [c.copy() for c in scans[0]]
     clouds[2] = clouds[2][:3]  # too few points to register

@@ -10,9 +10,9 @@ import pytest
 from typer.testing import CliRunner
 
 from deepmapping.cli.main import app
-from deepmapping.core import se2
-from deepmapping.core.keyframes import nearest_keyframe, poses_for_all_scans, select_keyframes
-from deepmapping.core.relations import Relations, read_relations, score_relations
+from deepmapping.geometry import se2
+from deepmapping.methods.keyframes import nearest_keyframe, poses_for_all_scans, select_keyframes
+from deepmapping.evaluation.relations import Relations, read_relations, score_relations
 from deepmapping.errors import ConfigError, InputError
 from deepmapping.io.carmen import match_scans, read_carmen
 from deepmapping.io.loaders import detect_format, load_scans

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from deepmapping.config import load_config
-from deepmapping.core import se2
+from deepmapping.geometry import se2
 from deepmapping.errors import ConfigError
 
 
@@ -144,7 +144,7 @@ def hard_trajectory():
 
 
 def _pairwise_point_icp_from_identity(scans) -> np.ndarray:
-    from deepmapping.core.icp import icp_2d
+    from deepmapping.methods.icp import icp_2d
 
     rel = [icp_2d(scans.points[i + 1][scans.valid[i + 1]].astype(float), scans.points[i][scans.valid[i]].astype(float),
                   method="point")[0] for i in range(scans.num_scans - 1)]
@@ -155,7 +155,7 @@ def test_cold_deepmapping_registers_from_no_initial_poses(hard_trajectory):
     """No initial poses, no ICP: DeepMapping (cold profile) registers the trajectory, with every
     pose starting at the origin, better than point-to-point ICP chained from the identity."""
     from deepmapping.api import evaluate_poses, register
-    from deepmapping.core.metrics import ate
+    from deepmapping.evaluation.metrics import ate
 
     res = register(hard_trajectory, _cold(**{"optim.epochs": 30}))
     start = evaluate_poses(hard_trajectory, res.init_poses)["ate"]
@@ -210,7 +210,7 @@ def test_curriculum_run_is_reproducible_from_the_seed(hard_trajectory):
 
 
 def _planar_model(pivot: str):
-    from deepmapping.core import se3
+    from deepmapping.geometry import se3
     from deepmapping.solver.model import DeepMappingModel
 
     rng = np.random.default_rng(0)

@@ -1,13 +1,13 @@
-"""Tests of deepmapping.core: SE(2), rigid alignment, metrics, 2D ICP."""
+"""Tests of SE(2), rigid alignment, metrics and 2D ICP (deepmapping.geometry, .evaluation, .methods)."""
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from deepmapping.core import se2
-from deepmapping.core.alignment import align_poses_2d, rigid_align
-from deepmapping.core.icp import icp_2d, incremental_icp
-from deepmapping.core.metrics import ate, evaluate, point_distance, rotation_rmse_deg
+from deepmapping.geometry import se2
+from deepmapping.geometry.alignment import align_poses_2d, rigid_align
+from deepmapping.methods.icp import icp_2d, incremental_icp
+from deepmapping.evaluation.metrics import ate, evaluate, point_distance, rotation_rmse_deg
 
 
 def random_poses(rng, k, trans=5.0):

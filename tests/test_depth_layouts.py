@@ -13,7 +13,7 @@ from PIL import Image
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from deepmapping.core import se3
+from deepmapping.geometry import se3
 from deepmapping.errors import ConfigError, InputError
 from deepmapping.io.depth import (INTRINSICS_PRESETS, DepthOptions, parse_frames, parse_image_size, pixel_grid,
                                   select_frames)
@@ -265,7 +265,7 @@ def test_auto_warm_start_is_icp_for_handheld_depth(tmp_path):
 def test_success_threshold_follows_the_data(tmp_path):
     """450 mm only for the AVD protocol (depth images, planar poses); 2 % of the typical range else."""
     from deepmapping.api import evaluate_poses
-    from deepmapping.core.metrics3d import AVD_SUCCESS_M, RELATIVE_SUCCESS, typical_range
+    from deepmapping.evaluation.metrics3d import AVD_SUCCESS_M, RELATIVE_SUCCESS, typical_range
 
     s = load_scans(seven_scenes(tmp_path), depth=DepthOptions(pixel_stride=1))
     m = evaluate_poses(s, poses(5))

@@ -5,10 +5,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from deepmapping.api import evaluate_poses
-from deepmapping.core import se2, se3
-from deepmapping.core.evo_metrics import ape, evo_metrics, rpe
-from deepmapping.core.metrics import ate
-from deepmapping.core.metrics3d import ate_3d
+from deepmapping.geometry import se2, se3
+from deepmapping.evaluation.evo_metrics import ape, evo_metrics, rpe
+from deepmapping.evaluation.metrics import ate
+from deepmapping.evaluation.metrics3d import ate_3d
 from deepmapping.data import ScanSet
 
 

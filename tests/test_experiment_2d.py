@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from deepmapping.core import se2
+from deepmapping.geometry import se2
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +33,7 @@ def _pose_error(pose, true) -> tuple[float, float]:
 
 
 def test_icp_alone_fails_on_the_far_pair(far_pair):
-    from deepmapping.core.icp import icp_2d
+    from deepmapping.methods.icp import icp_2d
 
     source, target, true = far_pair
     _, angle = _pose_error(icp_2d(source, target)[0], true)
@@ -41,7 +41,7 @@ def test_icp_alone_fails_on_the_far_pair(far_pair):
 
 
 def test_goicp_recovers_a_known_transform(far_pair):
-    from deepmapping.core.goicp import goicp_2d
+    from deepmapping.methods.goicp import goicp_2d
 
     source, target, true = far_pair
     pose, info = goicp_2d(source, target, trim_fraction=0.1, time_budget_s=30.0)
@@ -51,7 +51,7 @@ def test_goicp_recovers_a_known_transform(far_pair):
 
 
 def test_pso_recovers_a_known_transform(far_pair):
-    from deepmapping.core.pso import pso_register_2d
+    from deepmapping.methods.pso import pso_register_2d
 
     source, target, true = far_pair
     pose, info = pso_register_2d(source, target, trim_fraction=0.1, rounds=3, seed=0)
@@ -61,7 +61,7 @@ def test_pso_recovers_a_known_transform(far_pair):
 
 
 def test_pso_stops_at_its_time_budget(far_pair):
-    from deepmapping.core.pso import pso_register_2d
+    from deepmapping.methods.pso import pso_register_2d
 
     source, target, _ = far_pair
     _, info = pso_register_2d(source, target, time_budget_s=0.3, seed=1)

@@ -5,7 +5,7 @@ import pytest
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
-from deepmapping.core import se3
+from deepmapping.geometry import se3
 from deepmapping.tools.export3d import (occupancy_grid, occupancy_mesh, read_occupancy_grid,
                                         registered_cloud, scan_colors, write_mesh_ply,
                                         write_occupancy_grid, write_registered_cloud)

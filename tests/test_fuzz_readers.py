@@ -326,7 +326,7 @@ def kitti_text(p: np.ndarray) -> str:
 
 
 def tum_text(p: np.ndarray) -> str:
-    from deepmapping.core import se3
+    from deepmapping.geometry import se3
 
     q = se3.to_xyz_quat(p)
     return "# timestamp tx ty tz qx qy qz qw\n" + "".join(
@@ -365,7 +365,7 @@ def pose_4x4_text(p: np.ndarray) -> str:
 
 
 def tum_stamped_text(p: np.ndarray, stamps) -> str:
-    from deepmapping.core import se3
+    from deepmapping.geometry import se3
 
     return "# ground truth\n" + "".join(f"{t:.4f} " + " ".join(f"{v:.9g}" for v in row) + "\n"
                                        for t, row in zip(stamps, se3.to_xyz_quat(p)))

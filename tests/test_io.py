@@ -453,7 +453,7 @@ def test_loader_different_dimension_and_nonzero_z(tmp_path: Path) -> None:
 
 
 def test_folder_of_3d_clouds_with_xyz_and_poses(tmp_path: Path) -> None:
-    from deepmapping.core import se3
+    from deepmapping.geometry import se3
     from deepmapping.io.poses3d import write_tum_poses
 
     (tmp_path / "a.xyz").write_text("# x y z r\n1 2 3 9\n4 5 6 9\n\n7,8,9\n")

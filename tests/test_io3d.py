@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from deepmapping.core import se3
+from deepmapping.geometry import se3
 from deepmapping.errors import InputError
 from deepmapping.io.bunny import bunny_pose_errors, is_bunny_folder, load_bunny, scan_centroids
 from deepmapping.io.ply import read_ply

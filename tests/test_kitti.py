@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from deepmapping.core import se3
+from deepmapping.geometry import se3
 from deepmapping.errors import InputError
 from deepmapping.io.kitti import read_velodyne_bin, write_velodyne_bin
 from deepmapping.io.loaders import detect_format, load_scans

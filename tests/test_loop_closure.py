@@ -1,15 +1,15 @@
-"""Loop closures for long 2D sequences (core.loop_closure) and the 2D pose graph behind them."""
+"""Loop closures for long 2D sequences (methods.loop_closure) and the 2D pose graph behind them."""
 
 import numpy as np
 import pytest
 
 from deepmapping.api import baseline_poses
 from deepmapping.config import load_config
-from deepmapping.core import se2
-from deepmapping.core.icp import incremental_icp
-from deepmapping.core.loop_closure import close_loops
-from deepmapping.core.metrics import ate
-from deepmapping.core.pose_graph_2d import Edge, optimize_pose_graph
+from deepmapping.geometry import se2
+from deepmapping.methods.icp import incremental_icp
+from deepmapping.methods.loop_closure import close_loops
+from deepmapping.evaluation.metrics import ate
+from deepmapping.methods.pose_graph_2d import Edge, optimize_pose_graph
 from deepmapping.data import ScanSet
 from deepmapping.errors import ConfigError
 from deepmapping.sim.scanner import simulate_scans
@@ -91,7 +91,7 @@ def test_loop_closure_method_is_2d_only():
 
 
 def test_non_keyframes_matched_to_their_keyframe(ring):
-    from deepmapping.core.keyframes import poses_for_all_scans, refine_by_scan_matching
+    from deepmapping.methods.keyframes import poses_for_all_scans, refine_by_scan_matching
 
     points, valid, gt, odom = ring
     keyframes = np.arange(0, len(gt), 5)
@@ -107,7 +107,7 @@ def test_non_keyframes_matched_to_their_keyframe(ring):
 def test_non_keyframes_recover_an_odometry_turn_error(ring):
     """Wheel slip: the odometry of the non-keyframes after keyframe 20 is 15 degrees off (as on
     fr079); matching against the keyframes around them still places them within 1 degree."""
-    from deepmapping.core.keyframes import poses_for_all_scans, refine_by_scan_matching
+    from deepmapping.methods.keyframes import poses_for_all_scans, refine_by_scan_matching
 
     points, valid, gt, _ = ring
     keyframes = np.arange(0, len(gt), 5)
@@ -128,7 +128,7 @@ def test_odometry_prior_holds_the_unobservable_corridor_direction():
     """Point-to-line ICP in a straight corridor with one weak feature slides along it; with the
     odometry prior the along-corridor offset stays near the odometry guess while the
     cross-corridor offset is still corrected from the scans."""
-    from deepmapping.core.icp import icp_2d
+    from deepmapping.methods.icp import icp_2d
 
     rng = np.random.default_rng(1)
     xs = np.linspace(-5, 5, 400)
@@ -151,7 +151,7 @@ def test_odometry_prior_holds_the_unobservable_corridor_direction():
 def test_constraint_is_low_in_a_corridor_and_high_in_a_room():
     from scipy.spatial import cKDTree
 
-    from deepmapping.core.loop_closure import _constraint
+    from deepmapping.methods.loop_closure import _constraint
 
     xs = np.linspace(-5, 5, 300)
     corridor = np.concatenate([np.column_stack([xs, np.full_like(xs, -1.0)]), np.column_stack([xs, np.full_like(xs, 1.0)])])
@@ -165,7 +165,7 @@ def test_constraint_is_low_in_a_corridor_and_high_in_a_room():
 
 def test_sequential_match_recovers_an_odometry_jump(ring):
     """An odometry step a metre off (wheel slip) is recovered: the coarse-to-fine hypothesis wins."""
-    from deepmapping.core.loop_closure import _sequential
+    from deepmapping.methods.loop_closure import _sequential
 
     points, valid, gt, _ = ring
     poses = gt[:6].copy()

@@ -43,7 +43,7 @@ def test_bunny_check_small():
 def test_3dtk_check_small(tmp_path):
     from test_cli import dm, ok
 
-    from deepmapping.core import se3
+    from deepmapping.geometry import se3
     from deepmapping.io.threedtk import load_3dtk, read_frames
 
     out = tmp_path / "run"

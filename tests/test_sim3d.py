@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from deepmapping.core import se3
+from deepmapping.geometry import se3
 from deepmapping.errors import InputError
 from deepmapping.io.lidar import is_lidar_folder, load_lidar
 from deepmapping.io.ply import write_ply

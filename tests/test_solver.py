@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from deepmapping.config import load_config
-from deepmapping.core import se2
+from deepmapping.geometry import se2
 from deepmapping.solver import geometry, loss, sampling
 from deepmapping.solver.trainer import epoch_batches
 

@@ -6,7 +6,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from deepmapping.config import load_config
-from deepmapping.core import se3
+from deepmapping.geometry import se3
 from deepmapping.solver.geometry import correction_matrix, planar_matrix, rotation_from_6d, six_dof_matrix, transform
 from deepmapping.solver.model import DeepMappingModel, fill_invalid
 from deepmapping.solver.networks import LNet
@@ -83,7 +83,7 @@ def lidar_problem(tmp_path_factory):
 @pytest.mark.parametrize("method", ["deepmapping", "direct"])
 def test_six_dof_registration_reduces_position_and_rotation_errors(lidar_problem, method):
     from deepmapping.api import register
-    from deepmapping.core.metrics3d import ate_3d, rotation_errors_deg
+    from deepmapping.evaluation.metrics3d import ate_3d, rotation_errors_deg
 
     s = lidar_problem
     # 50 steps in all: no M-Net warm-up (default-3d holds the poses for 20 epochs and 100 steps)
@@ -174,7 +174,7 @@ def test_auto_warm_start_is_planar_icp_for_depth_images_and_icp_for_clouds(lidar
     # Open3D's ICP may differ in the last bits between two runs
     np.testing.assert_allclose(warm_start_poses(depth, cfg), baseline_poses(depth, cfg, "icp-plane"), atol=1e-9)
     clouds = warm_start_poses(lidar_problem, cfg)  # incremental ICP: close to the truth
-    from deepmapping.core.metrics3d import ate_3d
+    from deepmapping.evaluation.metrics3d import ate_3d
 
     assert ate_3d(clouds, lidar_problem.gt_poses) < 0.05
 
@@ -182,8 +182,8 @@ def test_auto_warm_start_is_planar_icp_for_depth_images_and_icp_for_clouds(lidar
 def test_kiss_icp_warm_start_on_a_slow_lidar_sequence(tmp_path):
     """--warm-start kiss-icp: DeepMapping starts from KISS-ICP's odometry (a robot at 1 m/s, 10 Hz)."""
     from deepmapping.api import register
-    from deepmapping.core.kiss_odometry import kiss_icp_poses
-    from deepmapping.core.metrics3d import ate_3d
+    from deepmapping.methods.kiss_odometry import kiss_icp_poses
+    from deepmapping.evaluation.metrics3d import ate_3d
     from deepmapping.io.lidar import load_lidar
     from deepmapping.sim.lidar import write_lidar_dataset
 

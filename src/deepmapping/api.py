@@ -89,27 +89,27 @@ def baseline_poses(scans: ScanSet, cfg: Config, method: str, init=None, progress
     if method == "icp-planar":
         if scans.pose_dof != 3:
             raise ConfigError("icp-planar estimates planar [x, z, theta] poses: it needs 3-DoF scans (pose_dof 3)")
-        from deepmapping.core.icp_planar import incremental_icp_planar
+        from deepmapping.methods.icp_planar import incremental_icp_planar
 
         return incremental_icp_planar(clouds, init=init, yaw_hypotheses_deg=cfg.icp.yaw_hypotheses_deg,
                                       progress=progress, **opts)
     if method == "kiss-icp":
-        from deepmapping.core.kiss_odometry import kiss_icp_poses
+        from deepmapping.methods.kiss_odometry import kiss_icp_poses
 
         return kiss_icp_poses(clouds, init=init, voxel_size=cfg.icp.voxel_size, threads=cfg.threads or 1,
                               progress=progress)
     if method == "multiway":
-        from deepmapping.core.multiway import multiway_registration
+        from deepmapping.methods.multiway import multiway_registration
 
         return multiway_registration(clouds, init=init, edges=cfg.icp.multiway_edges, progress=progress, **opts)
-    from deepmapping.core.icp3d import incremental_icp_3d
+    from deepmapping.methods.icp3d import incremental_icp_3d
 
     return incremental_icp_3d(clouds, method=method.removeprefix("icp-"), init=init,
                               max_iterations=cfg.icp.max_iterations, progress=progress, **opts)
 
 
 def incremental_icp(scans: ScanSet, cfg: Config, method: str, progress=None, init=None) -> np.ndarray:
-    from deepmapping.core.icp import incremental_icp as icp_chain
+    from deepmapping.methods.icp import incremental_icp as icp_chain
 
     return icp_chain(scans.points.astype(np.float64), scans.valid, method=method.removeprefix("icp-"),
                      initial_poses=init,
@@ -119,9 +119,9 @@ def incremental_icp(scans: ScanSet, cfg: Config, method: str, progress=None, ini
 
 
 def loop_closure_poses(scans: ScanSet, cfg: Config, init=None, progress=None) -> np.ndarray:
-    """Incremental ICP with loop closures and pose-graph optimization (core.loop_closure), each
+    """Incremental ICP with loop closures and pose-graph optimization (methods.loop_closure), each
     pair started from ``init`` (e.g. odometry) or from the identity."""
-    from deepmapping.core.loop_closure import close_loops
+    from deepmapping.methods.loop_closure import close_loops
 
     c = cfg.icp
     guess = np.zeros((scans.num_scans, 3)) if init is None else init
@@ -230,9 +230,9 @@ def _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_place=N
         if scans.gt_poses is None:
             return None
         if scans.is_3d:
-            from deepmapping.core.metrics3d import ate_3d as ate
+            from deepmapping.evaluation.metrics3d import ate_3d as ate
         else:
-            from deepmapping.core.metrics import ate
+            from deepmapping.evaluation.metrics import ate
         return ate(frame.from_norm(poses_norm), scans.gt_poses) * scans.unit_scale
 
     trainer = Trainer(cfg, model, valid, scans.ordered, evaluate)
@@ -321,8 +321,8 @@ def _finish(scans: ScanSet, cfg: Config, poses: np.ndarray, t0: float, init) -> 
 
 def evaluate_relations(scans: ScanSet, poses: np.ndarray, relations_path=None) -> dict:
     """Kümmerle et al.'s relations metric of keyframe ``poses`` (2D), every scan of the input
-    placed from its nearest keyframe by odometry (see core.keyframes)."""
-    from deepmapping.core.relations import read_relations, score_relations
+    placed from its nearest keyframe by odometry (see methods.keyframes)."""
+    from deepmapping.evaluation.relations import read_relations, score_relations
 
     seq = scans.sequence
     path = relations_path or (seq.relations_path if seq is not None else None)
@@ -336,12 +336,12 @@ def evaluate_poses(scans: ScanSet, poses: np.ndarray, success_threshold: float |
     """The paper's metrics (ATE, point distance, success; rotation errors) against scans.gt_poses.
 
     success_threshold None: 20 px (2D), 450 mm for AVD-like depth images (planar poses, the paper's
-    protocol), 2 % of the typical range for other 3D data (core.metrics3d.success_threshold_3d)."""
+    protocol), 2 % of the typical range for other 3D data (evaluation.metrics3d.success_threshold_3d)."""
     if scans.is_3d:
-        from deepmapping.core.metrics3d import evaluate_3d as evaluate
+        from deepmapping.evaluation.metrics3d import evaluate_3d as evaluate
     else:
-        from deepmapping.core.metrics import evaluate
-    from deepmapping.core.evo_metrics import evo_metrics
+        from deepmapping.evaluation.metrics import evaluate
+    from deepmapping.evaluation.evo_metrics import evo_metrics
 
     extra = {"avd_protocol": scans.grid_shape is not None and scans.pose_dof == 3} if scans.is_3d else {}
     metrics = evaluate(poses, scans.gt_poses, scans.points, scans.valid, unit_scale=scans.unit_scale,

@@ -242,7 +242,7 @@ class WarmStartConfig(_Section):
 class EvalConfig(_Section):
     # ATE below this (in reporting units: px for 2D, mm for depth images) = success. None = 20 px
     # for 2D (supplementary B), 450 mm for AVD-like depth images with planar poses (supplementary
-    # C), 2 % of the typical range for other 3D data (core.metrics3d.success_threshold_3d)
+    # C), 2 % of the typical range for other 3D data (evaluation.metrics3d.success_threshold_3d)
     success_threshold: PosFloat | None = None
     # 3D occupancy export (points' units); None = half the M-Net's finest period (64-128 cells a side)
     voxel_size: PosFloat | None = None

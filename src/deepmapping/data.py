@@ -32,7 +32,7 @@ class FullSequence:
     def poses_for_all_scans(self, keyframe_poses: np.ndarray) -> np.ndarray:
         """(S, 3): keyframes at ``keyframe_poses``, the others placed by odometry from their nearest
         keyframe, then (placement "icp") matched to that keyframe's scan."""
-        from deepmapping.core.keyframes import poses_for_all_scans, refine_by_scan_matching
+        from deepmapping.methods.keyframes import poses_for_all_scans, refine_by_scan_matching
 
         kp = np.asarray(keyframe_poses, dtype=np.float64)
         key = kp.tobytes()

@@ -24,7 +24,7 @@ def run_demo(out: Path, poses: int, seed: int) -> None:
         cfg = build_config("default", None, method, None, None, None, None, seed, {})
         scans, result = run_register(data, out / method, cfg, None, None, resume=False)
         rows[method], trajs[method] = result.metrics, result.poses * scans.unit_scale
-    from deepmapping.core.alignment import align_poses_2d
+    from deepmapping.geometry.alignment import align_poses_2d
 
     gt = scans.gt_poses * [scans.unit_scale, scans.unit_scale, 1]
     trajs = {k: align_poses_2d(v * [1, 1, 1], gt) for k, v in trajs.items()}

@@ -15,10 +15,10 @@ shared between workers). Methods, each run on every trajectory:
   direct baseline trains from those placements as from a warm start);
 * ``icp-point``, ``icp-plane``: incremental ICP (each scan onto its predecessor);
 * ``goicp``: Go-ICP, globally optimal pairwise registration by branch and bound
-  (:mod:`deepmapping.core.goicp`, our 2-D implementation; why not the ``py-goicp`` package
+  (:mod:`deepmapping.methods.goicp`, our 2-D implementation; why not the ``py-goicp`` package
   is said there), incremental like ICP, trimmed 10 %, optimality gap 1e-5 per point;
 * ``pso``: particle swarm registration as the paper's baseline (iralabdisco/pso_registration,
-  :mod:`deepmapping.core.pso`; why not ``pyswarms`` is said there), incremental, rounds of
+  :mod:`deepmapping.methods.pso`; why not ``pyswarms`` is said there), incremental, rounds of
   fresh swarms "until they consume the same time as DeepMapping" (§4.1).
 
 Go-ICP, PSO and the paper profile get a wall-time budget per trajectory equal to what the
@@ -148,19 +148,19 @@ def _register(scans, method: str, epochs, time_budget_s, seed) -> tuple[dict, di
 
 
 def _pairwise(scans, method: str, time_budget_s, seed) -> tuple[dict, dict]:
-    from deepmapping.core.metrics import evaluate
+    from deepmapping.evaluation.metrics import evaluate
 
     # distance transforms of 1024^2 cells (~2.9 px on these maps at 512^2): building one per pair
     # takes ~0.1 s, a small part of a full-size pair's budget but all of a quick one's
     dt_size = 1024 if scans.points.shape[1] >= 256 else 512
     t0 = time.perf_counter()
     if method == "goicp":
-        from deepmapping.core.goicp import incremental_goicp
+        from deepmapping.methods.goicp import incremental_goicp
 
         poses, info = incremental_goicp(scans.points, scans.valid, time_budget_s=time_budget_s,
                                         trim_fraction=0.1, mse_threshold=1e-5, dt_size=dt_size)
     else:
-        from deepmapping.core.pso import incremental_pso
+        from deepmapping.methods.pso import incremental_pso
 
         poses, info = incremental_pso(scans.points, scans.valid, time_budget_s=time_budget_s, seed=seed,
                                       trim_fraction=0.1, dt_size=dt_size)
@@ -311,7 +311,7 @@ def report(out: Path, results: dict[str, dict], quick: bool) -> Path:
         "then DeepMapping (L-Net) or direct optimization trains from those placements; both share the curriculum.",
         "- icp-point and icp-plane: our incremental 2D ICP from the constant-velocity guess; a pair whose result "
         "overlaps its predecessor clearly less than the same pair registered from the identity or by a bounded, "
-        "untrimmed ICP takes that one (core/icp.incremental_icp), so that one wrong basin does not run the chain away.",
+        "untrimmed ICP takes that one (methods/icp.incremental_icp), so that one wrong basin does not run the chain away.",
         "- goicp and pso are pairwise (each scan onto its predecessor, motions chained); Go-ICP is our 2-D "
         "implementation of Yang et al.'s branch and bound (trimmed 10 %), PSO follows iralabdisco/pso_registration "
         "(50 particles, global domain, mean nearest-point distance trimmed 10 %) in rounds until its budget.",

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deepmapping.core.metrics3d import AVD_SUCCESS_M
+from deepmapping.evaluation.metrics3d import AVD_SUCCESS_M
 from deepmapping.experiments.base import Job
 
 PROFILE = "default-3d"
@@ -43,7 +43,7 @@ TRAINED = [k for k, (_, o) in METHODS.items() if o and o["method"] in ("deepmapp
 # Table 2 (success %, real AVD, 3000 epochs, no warm start); the table does not say which loss
 # its DeepMapping and direct rows used: shown next to both cold rows of each
 PAPER_TABLE_2 = {"deepmapping": 80.0, "direct": 77.1, "multiway": 58.1}
-THRESHOLD_MM = AVD_SUCCESS_M * 1000.0  # the paper's criterion, defined in core.metrics3d
+THRESHOLD_MM = AVD_SUCCESS_M * 1000.0  # the paper's criterion, defined in evaluation.metrics3d
 
 FULL = {"trajectories": 10, "frames": 16, "width": 80, "height": 60, "epochs": None, "eval_every": 10}
 # quick: the cold rows' wide search is smaller (a smoke run in seconds, not a measurement)

@@ -83,8 +83,8 @@ def relocalize(map_seed: int, map_size: int, traj_seed: int, num_poses: int, num
 
     from deepmapping.api import register
     from deepmapping.config import load_config
-    from deepmapping.core import se2
-    from deepmapping.core.alignment import align_poses_2d
+    from deepmapping.geometry import se2
+    from deepmapping.geometry.alignment import align_poses_2d
     from deepmapping.sim.dataset import PX_SCALE, simulate
     from deepmapping.sim.maps import procedural_indoor_map
     from deepmapping.sim.trajectory import clearance_map

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deepmapping.core import se3
+from deepmapping.geometry import se3
 from deepmapping.data import ScanSet
 from deepmapping.errors import InputError
 from deepmapping.io.clouds import check_max_points, pad_clouds, subsample

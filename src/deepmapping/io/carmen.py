@@ -216,13 +216,13 @@ def relations_next_to(path: Path) -> Path | None:
 
 def load_carmen(path: str | os.PathLike, gt_path=None, init_path=None, keyframes: str | None = None,
                 non_keyframes: str = "icp"):
-    """A CARMEN log as a 2D ScanSet of its keyframes (``keyframes`` spec, see core.keyframes;
+    """A CARMEN log as a 2D ScanSet of its keyframes (``keyframes`` spec, see methods.keyframes;
     default ``motion:0.5,15``). init_poses = the log's laser poses (odometry: the warm start);
     ``sequence`` keeps every scan (timestamps, odometry) so a pose can be written for each, and
     the relations file next to the log (``<name>.relations``) for scoring. ``non_keyframes``:
     how the other scans get their pose, "odometry" from the nearest keyframe, or "icp" (then
     matched to that keyframe's scan)."""
-    from deepmapping.core.keyframes import select_keyframes
+    from deepmapping.methods.keyframes import select_keyframes
     from deepmapping.data import FullSequence, ScanSet
     from deepmapping.errors import ConfigError
 

@@ -18,7 +18,7 @@ from typing import IO
 
 import numpy as np
 
-from deepmapping.core import se3
+from deepmapping.geometry import se3
 from deepmapping.errors import InputError
 from deepmapping.io.atomic import atomic_write, read_user_file, read_user_text
 

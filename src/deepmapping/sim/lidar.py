@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from deepmapping.core import se3
+from deepmapping.geometry import se3
 from deepmapping.sim.raycast import caster_for
 
 __all__ = ["LidarConfig", "BASE", "lidar_pose", "smooth_trajectory", "scan", "simulate_lidar_trajectory",

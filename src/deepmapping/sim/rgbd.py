@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deepmapping.core import se3
+from deepmapping.geometry import se3
 from deepmapping.io.atomic import atomic_write, write_json
 from deepmapping.sim.raycast import caster_for
 

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 import torch
 
-from deepmapping.core import se2
+from deepmapping.geometry import se2
 from deepmapping.errors import ConfigError
 from deepmapping.solver.geometry import planar_matrix, transform, translation
 from deepmapping.solver.loss import chamfer
@@ -45,7 +45,7 @@ def enabled(cfg, model, ordered: bool) -> bool:
 
 
 # -- placements as planar poses ---------------------------------------------------------------
-# The curriculum reasons in planar poses [a, b, heading] (core.se2). 2D: the scans' own [x, y,
+# The curriculum reasons in planar poses [a, b, heading] (geometry.se2). 2D: the scans' own [x, y,
 # theta]. 3D (AVD-like, y vertical): [z, x, theta about y], the order in which a turn about y is
 # a counter-clockwise se2 rotation; the placements themselves are the model's free planar
 # corrections (model.make_direct), converted here.

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from deepmapping.core import se2, se3
+from deepmapping.geometry import se2, se3
 
 
 def _is_3d(poses: np.ndarray) -> bool:

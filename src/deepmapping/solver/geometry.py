@@ -1,4 +1,4 @@
-"""Poses in torch (differentiable), the same conventions as deepmapping.core.se2 / core.se3.
+"""Poses in torch (differentiable), the same conventions as deepmapping.geometry.se2 / geometry.se3.
 
 2D poses are (..., 3) [x, y, theta]. 3D poses are (..., 4, 4) sensor-to-global matrices; the
 L-Net's 3D output is a correction, either planar [dx, dz, dtheta] about the vertical y axis

@@ -21,7 +21,7 @@ EXPORT_MIN_CELLS, EXPORT_MAX_CELLS = 64, 128  # occupancy export: cells along th
 
 def point_spacing(points: np.ndarray, valid: np.ndarray) -> float:
     """Median nearest-neighbour distance within a scan (a few evenly spread scans), data units."""
-    from deepmapping.core.icp3d import point_spacing as spacing
+    from deepmapping.methods.icp3d import point_spacing as spacing
 
     return spacing([p[v] for p, v in zip(points, valid)])
 

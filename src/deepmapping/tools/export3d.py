@@ -115,7 +115,7 @@ def scan_colors(k: int) -> np.ndarray:
 
 def registered_cloud(points, valid, poses):
     """Valid points (K, N, 3) moved by their poses (K, 4, 4): (pts (M, 3) float64, scan_index (M,))."""
-    from deepmapping.core import se3
+    from deepmapping.geometry import se3
 
     pts, val = np.asarray(points, np.float64), np.asarray(valid, bool)
     poses = np.asarray(poses, np.float64)

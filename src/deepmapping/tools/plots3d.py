@@ -59,7 +59,7 @@ def plot_cloud_3d(path, points, valid, poses, gt_poses=None, title="", unit_scal
 
     ``show_trajectory=False`` leaves out the sensor positions (e.g. the bunny's, ~1.3 m from
     a 0.15 m object) so that the views frame the cloud alone."""
-    from deepmapping.core.metrics3d import align_poses_3d
+    from deepmapping.evaluation.metrics3d import align_poses_3d
     from deepmapping.tools.export3d import registered_cloud, scan_colors
 
     poses = np.asarray(poses, np.float64)
@@ -101,7 +101,7 @@ def plot_trajectories_3d(path, trajs: dict, gt=None, title="", unit_scale=1.0, u
     black); with ``align`` each trajectory is first rigidly aligned onto the ground truth."""
     import matplotlib
 
-    from deepmapping.core.metrics3d import align_poses_3d
+    from deepmapping.evaluation.metrics3d import align_poses_3d
 
     V, labels = view_basis(up_axis)
     colors = matplotlib.colormaps["tab10"].colors

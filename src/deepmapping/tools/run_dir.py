@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from deepmapping.api import Result
-from deepmapping.core import se2
+from deepmapping.geometry import se2
 from deepmapping.data import ScanSet
 from deepmapping.io.atomic import make_folder, write_json, write_text
 
@@ -104,7 +104,7 @@ def _write_history_csv(path: Path, history: dict) -> None:
 
 
 def _write_pictures(out: Path, scans: ScanSet, result: Result) -> None:
-    from deepmapping.core.alignment import align_poses_2d
+    from deepmapping.geometry.alignment import align_poses_2d
     from deepmapping.tools import plots
 
     unit, scale = scans.unit, scans.unit_scale

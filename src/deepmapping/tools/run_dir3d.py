@@ -24,7 +24,7 @@ def write_occupancy(out: Path, scans: ScanSet, result: Result, voxel: float | No
     """The M-Net's map as a voxel grid of occupancy probabilities and its 0.5 level set as a mesh;
     returns the grid's voxel and shape. Default voxel: half the M-Net's finest period (64-128
     cells along the longest side, solver.resolution.export_voxel)."""
-    from deepmapping.core import se3
+    from deepmapping.geometry import se3
     from deepmapping.solver.resolution import export_voxel
     from deepmapping.tools.export3d import occupancy_grid, occupancy_mesh, write_mesh_ply, write_occupancy_grid
 

@@ -1,7 +1,7 @@
 """Planar (3-DoF) point-to-plane ICP with yaw hypotheses, for AVD-like RGB-D sequences.
 
 AVD-style poses move on the floor: ``[x, z, theta]``, theta about the vertical y axis
-(:func:`deepmapping.core.se3.from_planar_xz`). Estimating only those three parameters keeps
+(:func:`deepmapping.geometry.se3.from_planar_xz`). Estimating only those three parameters keeps
 ICP from tilting or lifting a scan to fit a floor or a wall, and a few yaw hypotheses per
 pair (0 and +-30 deg by default: AVD turns the camera in 30 deg steps) get it out of the
 rotation local minima that make 6-DoF ICP from the identity wrong on most turns. Each
@@ -17,8 +17,8 @@ from typing import Callable, Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-from deepmapping.core import se3
-from deepmapping.core.icp3d import check_clouds, check_init, default_scales, prepare_clouds
+from deepmapping.geometry import se3
+from deepmapping.methods.icp3d import check_clouds, check_init, default_scales, prepare_clouds
 
 __all__ = ["planar_params", "register_pair_planar", "incremental_icp_planar", "DEFAULT_YAW_HYPOTHESES_DEG"]
 

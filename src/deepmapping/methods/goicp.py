@@ -13,7 +13,7 @@ search stops when no cube can beat the optimum by more than ``mse_threshold`` pe
 This is the same algorithm on SE(2): rotations are one interval ``[-pi, pi]`` (uncertainty
 radius ``2 |x| sin(delta / 2)`` for a half-width ``delta``), translations a square
 (radius ``sqrt(2) sigma`` for a half-side ``sigma``); distances come from a distance
-transform of the target (:class:`~deepmapping.core.distance_field.DistanceField2D`, its
+transform of the target (:class:`~deepmapping.geometry.distance_field.DistanceField2D`, its
 discretisation error subtracted in the lower bounds), as in Go-ICP. Points are normalised
 into the unit disc (Go-ICP normalises into ``[-1, 1]^3``), and its default search domain
 (all rotations, translations in ``[-1, 1]^2``) and ``MSEThresh`` semantics are kept.
@@ -33,8 +33,8 @@ import time
 
 import numpy as np
 
-from deepmapping.core import se2
-from deepmapping.core.distance_field import DistanceField2D, clean_points_2d
+from deepmapping.geometry import se2
+from deepmapping.geometry.distance_field import DistanceField2D, clean_points_2d
 
 __all__ = ["goicp_2d", "incremental_goicp"]
 
@@ -141,7 +141,7 @@ def goicp_2d(
 ) -> tuple[np.ndarray, dict]:
     """Register ``source`` (N, 2) onto ``target`` (M, 2) globally: returns (pose (3,), info).
 
-    The pose T satisfies target ≈ T(source) (as :func:`deepmapping.core.icp.icp_2d`).
+    The pose T satisfies target ≈ T(source) (as :func:`deepmapping.methods.icp.icp_2d`).
     Both clouds are scaled by one factor so that every point lies in the unit disc; the
     search covers all rotations and translations in ``[-translation_range,
     translation_range]^2`` of those normalised units. ``trim_fraction``: share of the
@@ -157,7 +157,7 @@ def goicp_2d(
     pruned. Only the lower bounds prove optimality, so the cheaper upper-bound search keeps
     the guarantee; solving it exactly spent whole budgets on one wrong rotation.
     """
-    from deepmapping.core.icp import icp_2d
+    from deepmapping.methods.icp import icp_2d
 
     t0 = time.perf_counter()
     src = clean_points_2d(source, "source")

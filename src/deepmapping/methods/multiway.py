@@ -5,7 +5,7 @@ point-to-plane ICP; the result and its information matrix form an edge: an *odom
 (consecutive scans, certain) or a *loop-closure* edge (any other pair, uncertain, so the
 line process of the global optimization may prune it). Node poses start from the chained
 odometry (or from ``init``) and are refined by Levenberg-Marquardt pose-graph optimization.
-Default scales as in :mod:`deepmapping.core.icp3d`.
+Default scales as in :mod:`deepmapping.methods.icp3d`.
 """
 
 from __future__ import annotations
@@ -14,9 +14,9 @@ from typing import Callable
 
 import numpy as np
 
-from deepmapping.core import se3
-from deepmapping.core.icp3d import check_clouds, check_init, default_scales, prepare_clouds, register_pair
-from deepmapping.core.open3d_utils import quiet_open3d
+from deepmapping.geometry import se3
+from deepmapping.methods.icp3d import check_clouds, check_init, default_scales, plausible, prepare_clouds, register_pair
+from deepmapping.methods.open3d_utils import quiet_open3d
 from deepmapping.errors import ConfigError
 
 __all__ = ["multiway_registration", "build_pose_graph", "edge_pairs"]
@@ -74,20 +74,6 @@ def build_pose_graph(clouds, init=None, voxel_size=None, max_correspondence_dist
             info = reg.get_information_matrix_from_point_clouds(pcds[i], pcds[j], scales.fine, transform)
             graph.edges.append(reg.PoseGraphEdge(i, j, transform, info, uncertain=failed or not odometry))
     return graph, scales
-
-
-MIN_FITNESS = 0.05  # share of source points with a fine-distance correspondence
-
-
-def plausible(res, guess: np.ndarray, scales, center) -> bool:
-    """A pairwise ICP result is kept when it overlaps at all and did not move the source scan's
-    centre further than the coarse correspondence distance from where the guess put it
-    (point-to-plane ICP on one dominant plane, e.g. the floor, can slide without bound). A
-    failed odometry pair keeps its guess as an uncertain edge; a failed loop-closure pair gets
-    no edge."""
-    c = np.append(np.asarray(center, dtype=np.float64), 1.0)
-    moved = np.linalg.norm((np.asarray(res.transformation) @ c - guess @ c)[:3])
-    return res.fitness >= MIN_FITNESS and float(moved) <= scales.coarse
 
 
 def multiway_registration(

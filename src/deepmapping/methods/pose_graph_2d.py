@@ -15,7 +15,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 
-from deepmapping.core import se2
+from deepmapping.geometry import se2
 
 __all__ = ["Edge", "optimize_pose_graph"]
 

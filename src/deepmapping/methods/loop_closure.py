@@ -9,7 +9,7 @@ so that matches in featureless corridors do not slide) and to a local
 submap around up to ``max_candidates`` earlier keyframes near its current estimate (at least
 ``min_gap`` keyframes back); a match is kept when at least ``min_overlap`` of the scan's
 points fall within ``inlier_distance`` of the submap; each kept loop closure triggers a
-pose-graph optimization (:mod:`deepmapping.core.pose_graph_2d`), so drift is removed before
+pose-graph optimization (:mod:`deepmapping.methods.pose_graph_2d`), so drift is removed before
 the next keyframe looks for its neighbours. The result warm-starts DeepMapping, and its
 edges feed DeepMapping's loop-closure consistency term.
 """
@@ -21,9 +21,9 @@ from typing import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 
-from deepmapping.core import se2
-from deepmapping.core.icp import estimate_normals_2d, icp_2d
-from deepmapping.core.pose_graph_2d import Edge, optimize_pose_graph
+from deepmapping.geometry import se2
+from deepmapping.methods.icp import estimate_normals_2d, icp_2d
+from deepmapping.methods.pose_graph_2d import Edge, optimize_pose_graph
 
 __all__ = ["close_loops"]
 

@@ -1,7 +1,7 @@
 """Vectorised SE(3) helpers on 4x4 homogeneous matrices (first step of the 3D issue, #4).
 
 A pose T maps a sensor-frame point p to the global frame: ``R @ p + t``; ``compose(a, b)``
-= apply b first, then a (``T_a @ T_b``), as in ``core/se2.py``. Arrays of shape (..., 4, 4)
+= apply b first, then a (``T_a @ T_b``), as in ``geometry/se2.py``. Arrays of shape (..., 4, 4)
 broadcast over the leading axes. Quaternions are scalar-last ``[qx, qy, qz, qw]`` (SciPy's
 and TUM's order). AVD-style 3-DoF poses ``[x, z, theta]`` rotate about the vertical y axis.
 """

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from deepmapping.core import se2
+from deepmapping.geometry import se2
 
 __all__ = ["rigid_align", "align_poses_2d"]
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from deepmapping.core import se2
+from deepmapping.geometry import se2
 
 __all__ = ["to_trajectory", "ape", "rpe", "evo_metrics"]
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from deepmapping.core import se2
+from deepmapping.geometry import se2
 from deepmapping.errors import ConfigError
 
 __all__ = ["parse_keyframes", "select_keyframes", "nearest_keyframe", "poses_for_all_scans", "refine_by_scan_matching"]
@@ -89,8 +89,8 @@ def refine_by_scan_matching(poses: np.ndarray, keyframes: np.ndarray, timestamps
     ``max_turn_deg`` from its odometry placement is not trusted (the odometry pose is kept).
     Odometry turns are often off by 10-20 degrees within two seconds (wheel slip on the
     Freiburg logs), so the turn allowed is wide; its translation is good to a few cm."""
-    from deepmapping.core.icp import icp_2d
-    from deepmapping.core.loop_closure import _submap
+    from deepmapping.methods.icp import icp_2d
+    from deepmapping.methods.loop_closure import _submap
 
     out = np.array(poses, dtype=np.float64, copy=True)
     near = nearest_keyframe(keyframes, timestamps)

@@ -1,8 +1,8 @@
 """A 2D distance transform of a point set: fast approximate nearest-point distances.
 
 Go-ICP (Yang et al., 2016) evaluates its bounds with a distance transform of the target
-instead of nearest-neighbour searches; :mod:`deepmapping.core.goicp` and
-:mod:`deepmapping.core.pso` use this one for every evaluation of a candidate pose.
+instead of nearest-neighbour searches; :mod:`deepmapping.methods.goicp` and
+:mod:`deepmapping.methods.pso` use this one for every evaluation of a candidate pose.
 """
 
 from __future__ import annotations

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from deepmapping.core import se2
-from deepmapping.core.alignment import align_poses_2d
+from deepmapping.geometry import se2
+from deepmapping.geometry.alignment import align_poses_2d
 
 __all__ = ["ate", "point_distance", "rotation_rmse_deg", "evaluate"]
 

@@ -10,9 +10,9 @@ rounds until they consume the same time as DeepMapping" (§4.1): each round is a
 swarm, the best pose over all rounds is kept.
 
 Here the same on SE(2) (x, y, theta), the score from a distance transform of the target
-(:class:`~deepmapping.core.distance_field.DistanceField2D`) so that a swarm step is one
+(:class:`~deepmapping.geometry.distance_field.DistanceField2D`) so that a swarm step is one
 vectorised look-up, optionally trimmed (the largest residuals left out, as
-:func:`deepmapping.core.goicp.goicp_2d`). A round ends after ``iterations`` generations or
+:func:`deepmapping.methods.goicp.goicp_2d`). A round ends after ``iterations`` generations or
 when its best score has not improved by ``tol`` (relative) for ``patience`` generations.
 
 Why our own implementation: ``pyswarms`` (1.3.0, last release 2021) installs and works, but
@@ -29,8 +29,8 @@ import time
 
 import numpy as np
 
-from deepmapping.core import se2
-from deepmapping.core.distance_field import DistanceField2D, clean_points_2d
+from deepmapping.geometry import se2
+from deepmapping.geometry.distance_field import DistanceField2D, clean_points_2d
 
 __all__ = ["pso_register_2d", "incremental_pso"]
 
@@ -56,7 +56,7 @@ def pso_register_2d(
 ) -> tuple[np.ndarray, dict]:
     """Register ``source`` (N, 2) onto ``target`` (M, 2): returns (pose (3,), info).
 
-    The pose T satisfies target ≈ T(source) (as :func:`deepmapping.core.icp.icp_2d`).
+    The pose T satisfies target ≈ T(source) (as :func:`deepmapping.methods.icp.icp_2d`).
     ``bounds``: ((x_lo, y_lo, theta_lo), (x_hi, y_hi, theta_hi)) of the search; None = the
     target's bounding box and all rotations (pso_registration's domain). Rounds run until
     ``time_budget_s`` is spent or ``rounds`` are done (at least one round; one when both are

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deepmapping.core import se2
+from deepmapping.geometry import se2
 from deepmapping.errors import InputError
 
 __all__ = ["Relations", "read_relations", "relation_errors", "score_relations", "LONG_RELATION_S"]

@@ -15,7 +15,7 @@ from typing import Callable
 
 import numpy as np
 
-from deepmapping.core.icp3d import check_clouds, check_init
+from deepmapping.methods.icp3d import check_clouds, check_init
 from deepmapping.errors import ConfigError
 
 __all__ = ["kiss_icp_poses", "kiss_config"]

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from deepmapping.core import se3
-from deepmapping.core.alignment import rigid_align
+from deepmapping.geometry import se3
+from deepmapping.geometry.alignment import rigid_align
 
 
 def _check(est, gt) -> tuple[np.ndarray, np.ndarray]:

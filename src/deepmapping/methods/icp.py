@@ -12,8 +12,8 @@ from typing import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 
-from deepmapping.core import se2
-from deepmapping.core.alignment import rigid_align
+from deepmapping.geometry import se2
+from deepmapping.geometry.alignment import rigid_align
 
 __all__ = ["icp_2d", "incremental_icp", "estimate_normals_2d", "overlap"]
 

@@ -1,7 +1,7 @@
 """Incremental (frame-to-frame) 3D ICP with Open3D: the classic baseline of §4.2 / supp. C.
 
 Scales (``voxel_size=None`` / ``max_correspondence_distance=None``), shared with
-:mod:`deepmapping.core.multiway`:
+:mod:`deepmapping.methods.multiway`:
 
 - ``d`` = median over scans of the scan's bounding-box diagonal (so metres in, metres out);
 - ``g`` = median distance from a point to its nearest neighbour in the same scan (the sampling);
@@ -22,12 +22,12 @@ from typing import Callable
 
 import numpy as np
 
-from deepmapping.core import se3
-from deepmapping.core.open3d_utils import quiet_open3d, to_pcd
+from deepmapping.geometry import se3
+from deepmapping.methods.open3d_utils import quiet_open3d, to_pcd
 from deepmapping.errors import ConfigError, InputError
 
 __all__ = ["incremental_icp_3d", "check_clouds", "check_init", "Scales", "default_scales", "point_spacing",
-           "prepare_clouds", "register_pair"]
+           "prepare_clouds", "register_pair", "plausible"]
 
 MIN_POINTS = 10
 COARSE_FACTOR = 10.0
@@ -136,6 +136,20 @@ def register_pair(source, target, guess: np.ndarray, scales: Scales, method: str
         return reg.registration_icp(source, target, scales.fine, coarse.transformation, estimation, criteria)
 
 
+MIN_FITNESS = 0.05  # share of source points with a fine-distance correspondence
+
+
+def plausible(res, guess: np.ndarray, scales, center) -> bool:
+    """A pairwise ICP result is kept when it overlaps at all and did not move the source scan's
+    centre further than the coarse correspondence distance from where the guess put it
+    (point-to-plane ICP on one dominant plane, e.g. the floor, can slide without bound). A
+    failed odometry pair keeps its guess as an uncertain edge; a failed loop-closure pair gets
+    no edge."""
+    c = np.append(np.asarray(center, dtype=np.float64), 1.0)
+    moved = np.linalg.norm((np.asarray(res.transformation) @ c - guess @ c)[:3])
+    return res.fitness >= MIN_FITNESS and float(moved) <= scales.coarse
+
+
 def incremental_icp_3d(
     clouds,
     method: str = "plane",
@@ -149,7 +163,7 @@ def incremental_icp_3d(
 
     Scan i+1 is registered to scan i ("plane": point-to-plane, "point": point-to-point), from
     the relative motion of ``init`` (K, 4, 4) when given, else the identity; the relative
-    motions are chained; an implausible pair (see ``multiway.plausible``: no overlap, or slid
+    motions are chained; an implausible pair (see ``plausible``: no overlap, or slid
     off) keeps its guess. Pose 0 = ``init[0]`` or the identity. ``progress(i, K-1)`` after each
     registered pair. Returns sensor-to-world poses (K, 4, 4).
     """
@@ -165,8 +179,6 @@ def incremental_icp_3d(
     for i in range(k - 1):
         guess = np.eye(4) if init is None else se3.relative(init[i], init[i + 1])
         res = register_pair(pcds[i + 1], pcds[i], guess, scales, method, max_iterations)
-        from deepmapping.core.multiway import plausible
-
         rel = np.asarray(res.transformation) if plausible(res, guess, scales, pcds[i + 1].get_center()) else guess
         poses[i + 1] = poses[i] @ rel
         if progress is not None:
