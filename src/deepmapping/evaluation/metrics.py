@@ -55,7 +55,10 @@ def point_distance(points, valid, est, gt) -> float:
     return float(d[valid].mean())
 
 
-def evaluate(est, gt, points, valid, unit_scale: float = 1.0, success_threshold: float | None = 20.0) -> dict:
+SUCCESS_PX = 20.0  # the paper's success criterion for 2D data (ATE in px, §4.1 / supplementary B)
+
+
+def evaluate(est, gt, points, valid, unit_scale: float = 1.0, success_threshold: float | None = SUCCESS_PX) -> dict:
     """All metrics; lengths multiplied by ``unit_scale`` (ground-truth units such as px).
 
     Returns {"ate", "point_distance", "success" (ate < success_threshold, both in scaled
@@ -63,7 +66,7 @@ def evaluate(est, gt, points, valid, unit_scale: float = 1.0, success_threshold:
     """
     est, gt = _check(est, gt)
     a = ate(est, gt) * unit_scale
-    success_threshold = 20.0 if success_threshold is None else success_threshold
+    success_threshold = SUCCESS_PX if success_threshold is None else success_threshold
     return {
         "ate": a,
         "point_distance": point_distance(points, valid, est, gt) * unit_scale,

@@ -43,6 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
+from deepmapping.evaluation.metrics import SUCCESS_PX
 from deepmapping.experiments.base import Job
 
 METHODS = ("deepmapping", "deepmapping-paper", "direct", "icp-point", "icp-plane", "goicp", "pso",
@@ -58,7 +59,6 @@ BUDGET_S_PER_POSE = 0.5
 NUM_TRAJECTORIES = 75
 QUICK = {"trajectories": (0, 1, 2), "num_poses": 32, "num_beams": 64, "epochs": 30}
 QUICK_BUDGET_S = 2.0  # about what the default profile takes at the quick size (1.9 s, one idle core)
-SUCCESS_PX = 20.0
 
 # The paper's numbers (Table 1: 128-pose trajectories; Fig. 6 / §4.1 text: median ATE and
 # point distance of DeepMapping). Runtimes: DeepMapping and direct on a TITAN XP GPU for

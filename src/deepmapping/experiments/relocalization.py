@@ -46,6 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
+from deepmapping.evaluation.metrics import SUCCESS_PX
 from deepmapping.experiments.base import Job
 
 FUNC = "deepmapping.experiments.relocalization:relocalize"
@@ -55,7 +56,6 @@ OVERRIDES = {"warm_start.method": "none", "curriculum.enabled": "off", "lnet.pos
 HEADINGS = ("nearest", "random")
 BINS = ((0.0, 16.0), (16.0, 64.0), (64.0, float("inf")))  # distance to the trajectory (px)
 SIMILAR_DEG = 30.0  # "similar orientation": within this of the nearest training pose's heading
-SUCCESS_PX = 20.0  # the paper's success threshold for a registration (supplementary B)
 
 
 def jobs(quick: bool) -> list[Job]:

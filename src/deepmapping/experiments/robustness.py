@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from deepmapping.evaluation.metrics import SUCCESS_PX
 from deepmapping.experiments.base import Job
 
 METHODS = ("deepmapping-cold", "direct-cold", "icp-point", "icp-plane", "goicp", "pso")
@@ -26,7 +27,6 @@ COLORS = {"deepmapping-cold": "tab:red", "direct-cold": "tab:orange", "icp-point
 FULL = {"trajectories": tuple(range(50, 60)), "strides": (2, 4, 8, 12, 16), "num_beams": 256, "epochs": None}
 QUICK = {"trajectories": (50,), "strides": (4, 16), "num_beams": 64, "epochs": 20}
 QUICK_BUDGET_S = 2.0
-SUCCESS_PX = 20.0
 
 
 def sizes(quick: bool) -> dict:
