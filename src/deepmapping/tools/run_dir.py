@@ -16,19 +16,12 @@ from deepmapping.api import Result
 from deepmapping.geometry import se2
 from deepmapping.data import ScanSet
 from deepmapping.io.atomic import make_folder, write_json, write_text
+from deepmapping.tools.run_files import write_config, write_history_csv
 
 
 def default_run_dir(method: str, root: str | Path = "runs") -> Path:
     """runs/YYYYmmdd-HHMMSS_<method> (a fresh timestamped folder per run)."""
     return Path(root) / f"{datetime.now():%Y%m%d-%H%M%S}_{method}"
-
-
-
-
-def write_config(out: Path, result_config) -> None:
-    import yaml
-
-    write_text(out / "config.yaml", yaml.safe_dump(result_config.model_dump(), sort_keys=False))
 
 
 def write_run(out: Path, scans: ScanSet, result: Result, data_info: dict, plots: bool = True) -> list[Path]:
@@ -57,7 +50,7 @@ def write_run(out: Path, scans: ScanSet, result: Result, data_info: dict, plots:
     if result.metrics is not None:
         write_json(out / "metrics.json", result.metrics)
     if result.history.get("iteration"):
-        _write_history_csv(out / "history.csv", result.history)
+        write_history_csv(out / "history.csv", result.history)
     if plots:
         _write_pictures(out, scans, result)
     return sorted(p for p in out.iterdir() if p.is_file() and not p.name.startswith("."))
@@ -92,15 +85,6 @@ def _global_cloud(scans: ScanSet, poses: np.ndarray) -> tuple[np.ndarray, np.nda
     xy, ids = glob[scans.valid], scan_id[scans.valid]
     colors = (matplotlib.colormaps["turbo"](ids / max(scans.num_scans - 1, 1))[:, :3] * 255).astype(np.uint8)
     return np.column_stack([xy, np.zeros(len(xy))]), colors
-
-
-def _write_history_csv(path: Path, history: dict) -> None:
-    """One row per log; the rollbacks (events, not a column) are in run.json."""
-    keys = [k for k in history if isinstance(history[k], list) and k != "rollbacks"]
-    rows = [",".join(keys)]
-    for vals in zip(*(history[k] for k in keys)):
-        rows.append(",".join("" if v is None else repr(v) for v in vals))
-    write_text(path, "\n".join(rows) + "\n")
 
 
 def _write_pictures(out: Path, scans: ScanSet, result: Result) -> None:

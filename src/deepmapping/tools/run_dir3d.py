@@ -9,8 +9,9 @@ import numpy as np
 
 from deepmapping.api import Result
 from deepmapping.data import ScanSet
-from deepmapping.io.atomic import make_folder
-from deepmapping.tools.run_dir import _write_history_csv, write_config, write_json
+from deepmapping.io.atomic import make_folder, write_json
+from deepmapping.tools.run_files import write_config, write_history_csv
+
 
 def write_poses_3d(out: Path, poses: np.ndarray) -> None:
     from deepmapping.io.poses3d import write_kitti_poses, write_poses_npy_3d, write_tum_poses
@@ -50,7 +51,7 @@ def write_run_3d(out: Path, scans: ScanSet, result: Result, data_info: dict, plo
     if result.metrics is not None:
         write_json(out / "metrics.json", result.metrics)
     if result.history.get("iteration"):
-        _write_history_csv(out / "history.csv", result.history)
+        write_history_csv(out / "history.csv", result.history)
     grid = write_occupancy(out, scans, result, result.config.eval.voxel_size) if result.occupancy is not None else None
     write_json(out / "run.json", {"method": result.method, "runtime_s": result.runtime_s,
                                   "num_scans": scans.num_scans, "unit": scans.unit,
