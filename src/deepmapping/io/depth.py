@@ -13,6 +13,7 @@ pixel's coordinates in the full image: keeping fewer pixels never changes the ca
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import re
 from pathlib import Path
@@ -23,7 +24,8 @@ from deepmapping.data import ScanSet
 from deepmapping.errors import ConfigError, InputError
 
 __all__ = ["DepthOptions", "Camera", "INTRINSICS_PRESETS", "DEFAULT_WIDTH", "parse_frames", "parse_image_size",
-           "select_frames", "pixel_grid", "read_k_matrix", "camera_from", "backproject", "depth_scanset"]
+           "select_frames", "pixel_grid", "read_k_matrix", "read_json", "read_intrinsics_json", "read_depth_png",
+           "camera_from", "backproject", "depth_scanset"]
 
 DEFAULT_WIDTH = 80  # layouts without a size of their own keep about this many pixels across (640 -> 80x60)
 INVALID_CODE = 65535  # "no measurement" in 7-Scenes (and saturated in uint16 images generally)
@@ -140,6 +142,58 @@ INTRINSICS_PRESETS = {
 }
 
 
+_INTR_KEYS = ("width", "height", "fx", "fy", "cx", "cy")
+
+
+def read_json(path: Path, required: bool = True) -> dict:
+    """A JSON object from ``path``; {} when absent and not ``required``; InputError otherwise."""
+    if not path.is_file():
+        if required:
+            raise InputError(f"{path}: file not found")
+        return {}
+    try:
+        obj = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as e:  # RecursionError: nested too deep
+        raise InputError(f"{path}: invalid JSON ({type(e).__name__}: {e})".splitlines()[0]) from None
+    if not isinstance(obj, dict):
+        raise InputError(f"{path}: expected a JSON object")
+    return obj
+
+
+def read_intrinsics_json(path: Path, default_scale: float = 1000.0) -> dict:
+    """``intrinsics.json`` as floats (width, height, fx, fy, cx, cy, depth_scale); InputError naming it."""
+    intr = read_json(path)
+    missing = [k for k in _INTR_KEYS if k not in intr]
+    if missing:
+        raise InputError(f"{path}: missing keys {', '.join(missing)}")
+    try:
+        out = {k: float(intr[k]) for k in _INTR_KEYS}
+        out["depth_scale"] = float(intr.get("depth_scale", default_scale))
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an integer too large for a float
+        raise InputError(f"{path}: intrinsics must be numbers") from None
+    if not all(np.isfinite(v) for v in out.values()) or min(out["fx"], out["fy"], out["depth_scale"]) <= 0:
+        raise InputError(f"{path}: fx, fy and depth_scale must be positive finite numbers")
+    if not (1 <= out["width"] <= 2**20 and 1 <= out["height"] <= 2**20):
+        raise InputError(f"{path}: width and height must be image sizes in pixels")
+    return out
+
+
+def read_depth_png(path: Path) -> np.ndarray:
+    """(H, W) uint16 depth image; InputError naming the file if unreadable or not 16-bit grey."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as img:
+            img.load()
+            mode = img.mode
+            arr = np.array(img)
+    except Exception as e:  # PIL raises OSError, SyntaxError, ValueError, ... on corrupt data
+        raise InputError(f"{path}: cannot read PNG ({type(e).__name__}: {e})".splitlines()[0]) from None
+    if not mode.startswith("I;16") or arr.ndim != 2:
+        raise InputError(f"{path}: depth must be a 16-bit single-channel PNG (uint16 mm), got mode {mode}")
+    return arr.astype(np.uint16)
+
+
 def read_k_matrix(path: Path, depth_scale: float) -> Camera:
     """A 3x3 K text file (``camera-intrinsics.txt``: 9 numbers, rows fx 0 cx / 0 fy cy / 0 0 1)."""
     from deepmapping.io.atomic import read_user_text
@@ -160,8 +214,6 @@ def read_k_matrix(path: Path, depth_scale: float) -> Camera:
 def _read_camera_file(path: Path, depth_scale: float) -> Camera:
     """An intrinsics.json (as the rgbd layout's) or a 3x3 K text file."""
     if path.suffix.lower() == ".json":
-        from deepmapping.io.rgbd import read_intrinsics_json
-
         intr = read_intrinsics_json(path, default_scale=depth_scale)
         return Camera(intr["fx"], intr["fy"], intr["cx"], intr["cy"], intr["depth_scale"],
                       int(intr["width"]), int(intr["height"]))
@@ -207,8 +259,6 @@ def backproject(images: np.ndarray, rows, cols, cam: Camera, max_depth_m: float 
 
 def read_depth_images(files: list[Path]) -> np.ndarray:
     """(K, H, W) uint16 images of ``files``; InputError naming the first unreadable or odd-sized one."""
-    from deepmapping.io.rgbd import read_depth_png
-
     images = []
     for f in files:
         img = read_depth_png(f)

@@ -13,7 +13,6 @@ Each depth pixel (u, v) with depth z is back-projected to the camera-frame point
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
@@ -21,13 +20,12 @@ import numpy as np
 
 from deepmapping.data import ScanSet
 from deepmapping.errors import InputError
-from deepmapping.io.depth import DepthOptions, as_path, camera_from, depth_scanset, natural_sorted, select_frames
+from deepmapping.io.depth import (DepthOptions, as_path, camera_from, depth_scanset, natural_sorted, read_depth_png,
+                                  read_intrinsics_json, read_json, select_frames)
 from deepmapping.io.poses3d import read_poses_3d
 
 __all__ = ["is_rgbd_folder", "load_rgbd", "read_json", "read_intrinsics_json", "read_depth_png", "load_pose_files",
            "sorted_files"]
-
-_INTR_KEYS = ("width", "height", "fx", "fy", "cx", "cy")
 
 
 def sorted_files(folder: Path, suffixes: tuple[str, ...]) -> list[Path]:
@@ -40,55 +38,6 @@ def is_rgbd_folder(path: str | os.PathLike) -> bool:
     """True for a folder holding ``intrinsics.json`` or a ``depth/`` subfolder."""
     path = Path(path)
     return path.is_dir() and ((path / "intrinsics.json").is_file() or (path / "depth").is_dir())
-
-
-def read_json(path: Path, required: bool = True) -> dict:
-    """A JSON object from ``path``; {} when absent and not ``required``; InputError otherwise."""
-    if not path.is_file():
-        if required:
-            raise InputError(f"{path}: file not found")
-        return {}
-    try:
-        obj = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as e:  # RecursionError: nested too deep
-        raise InputError(f"{path}: invalid JSON ({type(e).__name__}: {e})".splitlines()[0]) from None
-    if not isinstance(obj, dict):
-        raise InputError(f"{path}: expected a JSON object")
-    return obj
-
-
-def read_intrinsics_json(path: Path, default_scale: float = 1000.0) -> dict:
-    """``intrinsics.json`` as floats (width, height, fx, fy, cx, cy, depth_scale); InputError naming it."""
-    intr = read_json(path)
-    missing = [k for k in _INTR_KEYS if k not in intr]
-    if missing:
-        raise InputError(f"{path}: missing keys {', '.join(missing)}")
-    try:
-        out = {k: float(intr[k]) for k in _INTR_KEYS}
-        out["depth_scale"] = float(intr.get("depth_scale", default_scale))
-    except (TypeError, ValueError, OverflowError):  # OverflowError: an integer too large for a float
-        raise InputError(f"{path}: intrinsics must be numbers") from None
-    if not all(np.isfinite(v) for v in out.values()) or min(out["fx"], out["fy"], out["depth_scale"]) <= 0:
-        raise InputError(f"{path}: fx, fy and depth_scale must be positive finite numbers")
-    if not (1 <= out["width"] <= 2**20 and 1 <= out["height"] <= 2**20):
-        raise InputError(f"{path}: width and height must be image sizes in pixels")
-    return out
-
-
-def read_depth_png(path: Path) -> np.ndarray:
-    """(H, W) uint16 depth image; InputError naming the file if unreadable or not 16-bit grey."""
-    from PIL import Image
-
-    try:
-        with Image.open(path) as img:
-            img.load()
-            mode = img.mode
-            arr = np.array(img)
-    except Exception as e:  # PIL raises OSError, SyntaxError, ValueError, ... on corrupt data
-        raise InputError(f"{path}: cannot read PNG ({type(e).__name__}: {e})".splitlines()[0]) from None
-    if not mode.startswith("I;16") or arr.ndim != 2:
-        raise InputError(f"{path}: depth must be a 16-bit single-channel PNG (uint16 mm), got mode {mode}")
-    return arr.astype(np.uint16)
 
 
 def load_pose_files(folder: Path, k: int, gt_path=None, init_path=None, gt_default: str | None = "gt_poses.txt"):
