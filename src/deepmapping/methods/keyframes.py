@@ -90,7 +90,7 @@ def refine_by_scan_matching(poses: np.ndarray, keyframes: np.ndarray, timestamps
     Odometry turns are often off by 10-20 degrees within two seconds (wheel slip on the
     Freiburg logs), so the turn allowed is wide; its translation is good to a few cm."""
     from deepmapping.methods.icp import icp_2d
-    from deepmapping.methods.loop_closure import _submap
+    from deepmapping.methods.loop_closure import keyframe_submap
 
     out = np.array(poses, dtype=np.float64, copy=True)
     near = nearest_keyframe(keyframes, timestamps)
@@ -102,7 +102,7 @@ def refine_by_scan_matching(poses: np.ndarray, keyframes: np.ndarray, timestamps
         p = int(near[j])
         k = keyframes[p]
         if p not in targets:
-            targets[p] = _submap(key_points, key_valid, key_poses, p, submap)
+            targets[p] = keyframe_submap(key_points, key_valid, key_poses, p, submap)
         guess = se2.relative(out[k], out[j])
         rel, info = icp_2d(points[j][valid[j]], targets[p], init=guess, method="plane")
         change = se2.relative(guess, rel)

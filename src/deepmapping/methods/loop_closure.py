@@ -28,7 +28,8 @@ from deepmapping.methods.pose_graph_2d import Edge, optimize_pose_graph
 __all__ = ["close_loops"]
 
 
-def _submap(points, valid, poses, center, half_width):
+def keyframe_submap(points, valid, poses, center, half_width):
+    """Keyframes center-half_width..center+half_width merged into keyframe ``center``'s frame."""
     lo, hi = max(center - half_width, 0), min(center + half_width + 1, len(points))
     parts = [se2.transform_points(se2.relative(poses[center], poses[m]), points[m][valid[m]]) for m in range(lo, hi)]
     return np.concatenate(parts)
@@ -121,7 +122,7 @@ def _candidates(poses, n, min_gap, radius, max_candidates):
 
 
 def _match(pts, valid, poses, j, n, half_width, radius, min_overlap, inlier_distance, min_constraint):
-    target = _submap(pts, valid, poses, j, half_width)
+    target = keyframe_submap(pts, valid, poses, j, half_width)
     src = pts[n][valid[n]]
     guess = se2.relative(poses[j], poses[n])
     coarse, _ = icp_2d(src, target, init=guess, method="point", max_correspondence_distance=radius / 2, trim=None)

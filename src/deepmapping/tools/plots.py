@@ -72,13 +72,13 @@ def register_points(points, poses) -> np.ndarray:
     return np.stack([gx, gy], axis=-1)
 
 
-def _new_figure(figsize):
-    from matplotlib.figure import Figure  # no pyplot: rendered by the Agg canvas in _save
+def new_figure(figsize):
+    from matplotlib.figure import Figure  # no pyplot: rendered by the Agg canvas in save_figure
 
     return Figure(figsize=figsize, dpi=DPI, layout="constrained")
 
 
-def _save(fig, path) -> None:
+def save_figure(fig, path) -> None:
     """Render ``fig`` with Agg to ``path`` atomically (rendered in memory, then io.atomic)."""
     import io
 
@@ -93,7 +93,7 @@ def _save(fig, path) -> None:
     atomic_write(path, lambda f: f.write(buf.getvalue()))
 
 
-def _unit_label(unit: str) -> str:
+def unit_label(unit: str) -> str:
     return f" [{unit}]" if unit else ""
 
 
@@ -111,7 +111,7 @@ def _draw_traj(ax, xy, *, color, label, ls="-", lw=1.2, start=True, zorder=3):
                 ls="none", zorder=zorder + 1)
 
 
-def _legend_below(ax):
+def legend_below(ax):
     handles, labels = ax.get_legend_handles_labels()
     if handles:
         ax.figure.legend(handles, labels, loc="outside lower center",
@@ -132,7 +132,7 @@ def plot_map(path, points, valid, poses, gt_poses=None, title="", unit="px", uni
     gv = g[val]
     traj = ps[:, :2] * unit_scale
 
-    fig = _new_figure((7.0, 6.2))
+    fig = new_figure((7.0, 6.2))
     ax = fig.add_subplot(1, 1, 1)
     sc = ax.scatter(gv[:, 0], gv[:, 1], c=scan_idx, cmap="viridis", vmin=0, vmax=max(k - 1, 1),
                     s=_marker_size(len(gv)), marker="o", linewidths=0, rasterized=True, zorder=1)
@@ -144,14 +144,14 @@ def plot_map(path, points, valid, poses, gt_poses=None, title="", unit="px", uni
     cb = fig.colorbar(sc, ax=ax, shrink=0.85, pad=0.02)
     cb.set_label("scan index")
     ax.set_aspect("equal", adjustable="datalim")
-    ax.set_xlabel("x" + _unit_label(unit))
-    ax.set_ylabel("y" + _unit_label(unit))
+    ax.set_xlabel("x" + unit_label(unit))
+    ax.set_ylabel("y" + unit_label(unit))
     if invert_y:
         ax.invert_yaxis()
     ax.set_title(title or f"Registered point clouds ({k} scans)")
     ax.grid(True, lw=0.3, alpha=0.5)
-    _legend_below(ax)
-    _save(fig, path)
+    legend_below(ax)
+    save_figure(fig, path)
 
 
 # --------------------------------------------------------------------------- occupancy
@@ -354,7 +354,7 @@ def plot_occupancy(path, occupancy_fn, points, valid, poses, resolution=None, un
 
     h, w = img.shape
     aspect = h / max(w, 1)
-    fig = _new_figure((7.0, float(np.clip(5.6 * aspect + 1.6, 3.5, 10.0))))
+    fig = new_figure((7.0, float(np.clip(5.6 * aspect + 1.6, 3.5, 10.0))))
     ax = fig.add_subplot(1, 1, 1)
     cmap = matplotlib.colormaps["gray_r"].with_extremes(bad=_GREY)
     im = ax.imshow(np.ma.masked_invalid(img), cmap=cmap, vmin=0.0, vmax=1.0, origin="lower",
@@ -366,11 +366,11 @@ def plot_occupancy(path, occupancy_fn, points, valid, poses, resolution=None, un
     ax.set_aspect("equal")
     ax.set_xlim(ext[0], ext[1])
     ax.set_ylim((ext[3], ext[2]) if invert_y else (ext[2], ext[3]))
-    ax.set_xlabel("x" + _unit_label(unit))
-    ax.set_ylabel("y" + _unit_label(unit))
+    ax.set_xlabel("x" + unit_label(unit))
+    ax.set_ylabel("y" + unit_label(unit))
     ax.set_title(title or "Occupancy map estimated by the M-Net")
-    _legend_below(ax)
-    _save(fig, path)
+    legend_below(ax)
+    save_figure(fig, path)
 
 
 # --------------------------------------------------------------------------- curves
@@ -401,7 +401,7 @@ def plot_curves(path, history: dict):
     unit = history.get("unit", "") or ""
 
     rows = 2 if has_ate else 1
-    fig = _new_figure((10.0, 3.6 * rows + 0.4))
+    fig = new_figure((10.0, 3.6 * rows + 0.4))
     axes = np.atleast_2d(fig.subplots(rows, 2, squeeze=False))
 
     def line(ax, x, y, xlabel, ylabel, title, color, marker=None):
@@ -417,11 +417,11 @@ def plot_curves(path, history: dict):
     line(axes[0, 0], it, loss, "iteration", "loss", "Loss vs iteration", "tab:blue")
     line(axes[0, 1], t, loss, "wall time [s]", "loss", "Loss vs wall time", "tab:blue")
     if has_ate:
-        lab = "ATE" + _unit_label(unit)
+        lab = "ATE" + unit_label(unit)
         mk = "o" if np.isfinite(ate).sum() <= 60 else None
         line(axes[1, 0], it, ate, "iteration", lab, "ATE vs iteration", "tab:red", mk)
         line(axes[1, 1], t, ate, "wall time [s]", lab, "ATE vs wall time", "tab:red", mk)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 # --------------------------------------------------------------------------- trajectories
@@ -432,7 +432,7 @@ def plot_trajectories(path, trajs: dict, gt=None, unit="px", unit_scale=1.0, tit
     """Several trajectories (e.g. ICP, DeepMapping) and optionally the ground truth."""
     import matplotlib
 
-    fig = _new_figure((7.0, 6.0))
+    fig = new_figure((7.0, 6.0))
     ax = fig.add_subplot(1, 1, 1)
     colors = matplotlib.colormaps["tab10"].colors
     if gt is not None:
@@ -443,14 +443,14 @@ def plot_trajectories(path, trajs: dict, gt=None, unit="px", unit_scale=1.0, tit
         _draw_traj(ax, xy, color=colors[i % len(colors)], label=str(name), lw=1.3, zorder=3 + i)
     ax.plot([], [], marker="o", ms=6, mfc="grey", mec="white", ls="none", label="start")
     ax.set_aspect("equal", adjustable="datalim")
-    ax.set_xlabel("x" + _unit_label(unit))
-    ax.set_ylabel("y" + _unit_label(unit))
+    ax.set_xlabel("x" + unit_label(unit))
+    ax.set_ylabel("y" + unit_label(unit))
     if invert_y:
         ax.invert_yaxis()
     ax.set_title(title or "Trajectories")
     ax.grid(True, lw=0.3, alpha=0.5)
-    _legend_below(ax)
-    _save(fig, path)
+    legend_below(ax)
+    save_figure(fig, path)
 
 
 # --------------------------------------------------------------------------- environment
@@ -463,7 +463,7 @@ def plot_environment(path, occ, poses_px=None, title=""):
     if occ.ndim != 2:
         raise ValueError(f"occ: expected a 2-D image, got shape {occ.shape}")
     h, w = occ.shape
-    fig = _new_figure((7.0, float(np.clip(6.2 * h / max(w, 1) + 1.4, 3.5, 10.0))))
+    fig = new_figure((7.0, float(np.clip(6.2 * h / max(w, 1) + 1.4, 3.5, 10.0))))
     ax = fig.add_subplot(1, 1, 1)
     ax.imshow(occ, cmap="gray", vmin=0, vmax=255 if occ.max(initial=0) > 1 else 1,
               origin="upper", extent=(0, w, h, 0), interpolation="nearest")
@@ -476,11 +476,11 @@ def plot_environment(path, occ, poses_px=None, title=""):
                   angles="xy", scale_units="xy", scale=1.0, color="tab:red", width=0.004,
                   zorder=5, label="heading")
         ax.plot([], [], marker="o", ms=6, mfc="tab:blue", mec="white", ls="none", label="start")
-        _legend_below(ax)
+        legend_below(ax)
     ax.set_xlim(0, w)
     ax.set_ylim(h, 0)
     ax.set_aspect("equal")
     ax.set_xlabel("x = column [px]")
     ax.set_ylabel("y = row [px]")
     ax.set_title(title or f"Environment ({w}x{h} px)")
-    _save(fig, path)
+    save_figure(fig, path)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from deepmapping.tools.plots import _legend_below, _new_figure, _save, _unit_label
+from deepmapping.tools.plots import legend_below, new_figure, save_figure, unit_label
 
 __all__ = ["view_basis", "plot_cloud_3d", "plot_trajectories_3d"]
 
@@ -73,7 +73,7 @@ def plot_cloud_3d(path, points, valid, poses, gt_poses=None, title="", unit_scal
     colors = scan_colors(len(poses))[index] / 255.0
     size = float(np.clip(3.0e4 / max(len(d), 1), 0.3, 6.0))
 
-    fig = _new_figure((12.0, 6.0))
+    fig = new_figure((12.0, 6.0))
     ax3 = fig.add_subplot(1, 2, 1, projection="3d")
     ax3.scatter(d[:, 0], d[:, 1], d[:, 2], c=colors, s=size, linewidths=0, depthshade=False, rasterized=True)
     ax2 = fig.add_subplot(1, 2, 2)
@@ -83,16 +83,16 @@ def plot_cloud_3d(path, points, valid, poses, gt_poses=None, title="", unit_scal
         ax2.plot(t[:, 0], t[:, 1], color=c, ls=ls, lw=1.2, marker="o", ms=2.5, label=lab, zorder=3)
     _equal_3d(ax3, np.concatenate([d] + [t for t, *_ in trajs]))
     for set_label, name in zip((ax3.set_xlabel, ax3.set_ylabel, ax3.set_zlabel), labels):
-        set_label(name + _unit_label(unit))
+        set_label(name + unit_label(unit))
     ax3.set_title("perspective")
     ax2.set_aspect("equal", adjustable="datalim")
-    ax2.set_xlabel(labels[0] + _unit_label(unit))
-    ax2.set_ylabel(labels[1] + _unit_label(unit))
+    ax2.set_xlabel(labels[0] + unit_label(unit))
+    ax2.set_ylabel(labels[1] + unit_label(unit))
     ax2.set_title(f"top view (up = {labels[2]})")
     ax2.grid(True, lw=0.3, alpha=0.5)
     fig.suptitle(title or f"Registered point clouds ({len(poses)} scans)")
-    _legend_below(ax2)
-    _save(fig, path)
+    legend_below(ax2)
+    save_figure(fig, path)
 
 
 def plot_trajectories_3d(path, trajs: dict, gt=None, title="", unit_scale=1.0, unit="m", up_axis="-y",
@@ -105,7 +105,7 @@ def plot_trajectories_3d(path, trajs: dict, gt=None, title="", unit_scale=1.0, u
 
     V, labels = view_basis(up_axis)
     colors = matplotlib.colormaps["tab10"].colors
-    fig = _new_figure((7.0, 6.0))
+    fig = new_figure((7.0, 6.0))
     ax = fig.add_subplot(1, 1, 1)
     if gt is not None:
         g = np.asarray(gt, np.float64)[:, :3, 3] @ V.T * unit_scale
@@ -119,9 +119,9 @@ def plot_trajectories_3d(path, trajs: dict, gt=None, title="", unit_scale=1.0, u
         ax.plot(xy[0, 0], xy[0, 1], marker="o", ms=6, mfc=colors[i % len(colors)], mec="white", ls="none",
                 zorder=4 + i)
     ax.set_aspect("equal", adjustable="datalim")
-    ax.set_xlabel(labels[0] + _unit_label(unit))
-    ax.set_ylabel(labels[1] + _unit_label(unit))
+    ax.set_xlabel(labels[0] + unit_label(unit))
+    ax.set_ylabel(labels[1] + unit_label(unit))
     ax.set_title(title or f"Trajectories, top view (up = {labels[2]})")
     ax.grid(True, lw=0.3, alpha=0.5)
-    _legend_below(ax)
-    _save(fig, path)
+    legend_below(ax)
+    save_figure(fig, path)
