@@ -15,6 +15,7 @@ import numpy as np
 from deepmapping.config import Config, load_config
 from deepmapping.data import ScanSet
 from deepmapping.errors import ConfigError, InputError
+from deepmapping.methods.registry import CLASSICAL, run_classical
 
 
 @dataclass
@@ -71,67 +72,13 @@ def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | 
     return result
 
 
-BASELINES = ("icp-point", "icp-plane", "icp-planar", "multiway", "loop-closure", "kiss-icp")
+BASELINES = CLASSICAL  # the classical methods (methods.registry): baselines and warm starts
 
 
 def baseline_poses(scans: ScanSet, cfg: Config, method: str, init=None, progress=None) -> np.ndarray:
-    """Classic registration: incremental ICP (2D: ours; 3D: Open3D) or multiway registration (3D)."""
-    if not scans.is_3d:
-        if method in ("multiway", "icp-planar", "kiss-icp"):
-            raise ConfigError(f"{method} is implemented for 3D scans only")
-        if method == "loop-closure":
-            return loop_closure_poses(scans, cfg, init, progress)
-        return incremental_icp(scans, cfg, method, progress, init)
-    if method == "loop-closure":
-        raise ConfigError("loop-closure is implemented for 2D scans only (3D: multiway)")
-    clouds = [p[v].astype(np.float64) for p, v in zip(scans.points, scans.valid)]
-    opts = {"voxel_size": cfg.icp.voxel_size, "max_correspondence_distance": cfg.icp.max_correspondence_distance}
-    if method == "icp-planar":
-        if scans.pose_dof != 3:
-            raise ConfigError("icp-planar estimates planar [x, z, theta] poses: it needs 3-DoF scans (pose_dof 3)")
-        from deepmapping.methods.icp_planar import incremental_icp_planar
-
-        return incremental_icp_planar(clouds, init=init, yaw_hypotheses_deg=cfg.icp.yaw_hypotheses_deg,
-                                      progress=progress, **opts)
-    if method == "kiss-icp":
-        from deepmapping.methods.kiss_odometry import kiss_icp_poses
-
-        return kiss_icp_poses(clouds, init=init, voxel_size=cfg.icp.voxel_size, threads=cfg.threads or 1,
-                              progress=progress)
-    if method == "multiway":
-        from deepmapping.methods.multiway import multiway_registration
-
-        return multiway_registration(clouds, init=init, edges=cfg.icp.multiway_edges, progress=progress, **opts)
-    from deepmapping.methods.icp3d import incremental_icp_3d
-
-    return incremental_icp_3d(clouds, method=method.removeprefix("icp-"), init=init,
-                              max_iterations=cfg.icp.max_iterations, progress=progress, **opts)
-
-
-def incremental_icp(scans: ScanSet, cfg: Config, method: str, progress=None, init=None) -> np.ndarray:
-    from deepmapping.methods.icp import incremental_icp as icp_chain
-
-    return icp_chain(scans.points.astype(np.float64), scans.valid, method=method.removeprefix("icp-"),
-                     initial_poses=init,
-                     max_iterations=cfg.icp.max_iterations,
-                     max_correspondence_distance=cfg.icp.max_correspondence_distance,
-                     recover_margin=cfg.icp.recover_margin, progress=progress)
-
-
-def loop_closure_poses(scans: ScanSet, cfg: Config, init=None, progress=None) -> np.ndarray:
-    """Incremental ICP with loop closures and pose-graph optimization (methods.loop_closure), each
-    pair started from ``init`` (e.g. odometry) or from the identity."""
-    from deepmapping.methods.loop_closure import close_loops
-
-    c = cfg.icp
-    guess = np.zeros((scans.num_scans, 3)) if init is None else init
-    poses, _ = close_loops(scans.points, scans.valid, guess, min_gap=c.loop_min_gap, radius=c.loop_radius,
-                           max_candidates=c.loop_max_candidates, min_overlap=c.loop_min_overlap,
-                           inlier_distance=c.loop_inlier_distance, sequential_submap=c.loop_sequential_submap,
-                           sequential_method=c.loop_sequential_method,
-                           odometry_sigma=tuple(c.loop_odometry_sigma) or None,
-                           min_constraint=c.loop_min_constraint, progress=progress)
-    return poses
+    """Classic registration by name (methods.registry): incremental ICP (2D: ours; 3D: Open3D),
+    loop closure (2D logs), planar ICP, multiway registration or KISS-ICP odometry (3D)."""
+    return run_classical(scans, cfg, method, init, progress)
 
 
 def warm_start_poses(scans: ScanSet, cfg: Config, progress=None) -> np.ndarray:

@@ -8,13 +8,13 @@ from typing import List, Optional
 import typer
 
 from deepmapping.errors import DeepMappingError
+from deepmapping.methods.registry import METHODS as METHODS_BY_NAME
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="DeepMapping: register many 2D laser scans or 3D point clouds into one map by training an "
                        "L-Net and an M-Net.")
 
-METHODS = ("deepmapping | direct | icp-point | icp-plane | loop-closure (2D logs) | icp-planar (3D, planar poses) "
-           "| multiway (3D) | kiss-icp (3D sequences, KISS-ICP odometry)")
+METHODS = " | ".join(m.label for m in METHODS_BY_NAME.values())  # the registry (methods.registry)
 
 
 @app.command(epilog="Examples:\n\n  deepmapping simulate data/traj0 --poses 256 --seed 3\n\n"

@@ -1,0 +1,151 @@
+"""The registration methods by name (``--method``, ``--warm-start``): for which data each one runs,
+one line on what it does, and how it runs.
+
+``deepmapping`` and ``direct`` are the solver's (the networks, or the same loss over the poses;
+``deepmapping.solver``). Every other entry is a classical method, DeepMapping's baselines and its
+warm starts: ``run(scans, cfg, init, progress) -> poses`` (2D: (K, 3); 3D: (K, 4, 4)), ``init`` the
+initial poses or None, ``progress(done, total)`` after each pair.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from deepmapping.config import Config
+from deepmapping.data import ScanSet
+from deepmapping.errors import ConfigError
+
+__all__ = ["Method", "METHODS", "CLASSICAL", "get_method", "run_classical"]
+
+Run = Callable[[ScanSet, Config, "np.ndarray | None", "Callable[[int, int], None] | None"], np.ndarray]
+
+
+@dataclass(frozen=True)
+class Method:
+    name: str
+    dims: tuple[int, ...]  # the scans it registers: 2 (planar laser scans), 3 (clouds, depth images)
+    summary: str  # what it does, one line
+    scope: str = ""  # the data it is for, when not every kind (the CLI's help: 'loop-closure (2D logs)')
+    run: Run | None = None  # None: the solver's (deepmapping, direct)
+    hint_other_dims: str = ""  # added to the error on data of the other dimension
+
+    @property
+    def label(self) -> str:
+        return f"{self.name} ({self.scope})" if self.scope else self.name
+
+    def check(self, scans: ScanSet) -> None:
+        """ConfigError when the scans are of a dimension this method does not register."""
+        dim = 3 if scans.is_3d else 2
+        if dim not in self.dims:
+            only = "3D" if dim == 2 else "2D"
+            raise ConfigError(f"{self.name} is implemented for {only} scans only{self.hint_other_dims}")
+
+
+METHODS: dict[str, Method] = {}
+
+
+def _method(name: str, dims: tuple[int, ...], summary: str, scope: str = "", hint_other_dims: str = ""):
+    def add(run: Run | None) -> Run | None:
+        METHODS[name] = Method(name, dims, summary, scope, run, hint_other_dims)
+        return run
+    return add
+
+
+_method("deepmapping", (2, 3), "DeepMapping: the L-Net and the M-Net trained on the occupancy loss")(None)
+_method("direct", (2, 3), "the same loss optimized directly over the poses")(None)
+
+
+def _clouds(scans: ScanSet) -> list[np.ndarray]:
+    return [p[v].astype(np.float64) for p, v in zip(scans.points, scans.valid)]
+
+
+def _scales(cfg: Config) -> dict:
+    return {"voxel_size": cfg.icp.voxel_size, "max_correspondence_distance": cfg.icp.max_correspondence_distance}
+
+
+def _incremental_icp(scans: ScanSet, cfg: Config, init, progress, kind: str) -> np.ndarray:
+    if not scans.is_3d:  # ours: Open3D's ICP is 3D
+        from deepmapping.methods.icp import incremental_icp
+
+        return incremental_icp(scans.points.astype(np.float64), scans.valid, method=kind, initial_poses=init,
+                               max_iterations=cfg.icp.max_iterations,
+                               max_correspondence_distance=cfg.icp.max_correspondence_distance,
+                               recover_margin=cfg.icp.recover_margin, progress=progress)
+    from deepmapping.methods.icp3d import incremental_icp_3d
+
+    return incremental_icp_3d(_clouds(scans), method=kind, init=init, max_iterations=cfg.icp.max_iterations,
+                              progress=progress, **_scales(cfg))
+
+
+@_method("icp-point", (2, 3), "incremental point-to-point ICP")
+def _icp_point(scans, cfg, init=None, progress=None):
+    return _incremental_icp(scans, cfg, init, progress, "point")
+
+
+@_method("icp-plane", (2, 3), "incremental point-to-plane ICP")
+def _icp_plane(scans, cfg, init=None, progress=None):
+    return _incremental_icp(scans, cfg, init, progress, "plane")
+
+
+@_method("loop-closure", (2,), "incremental ICP, loop closures and a pose graph", "2D logs",
+         hint_other_dims=" (3D: multiway)")
+def _loop_closure(scans, cfg, init=None, progress=None):
+    """Each pair started from ``init`` (e.g. odometry) or from the identity (methods.loop_closure)."""
+    from deepmapping.methods.loop_closure import close_loops
+
+    c = cfg.icp
+    guess = np.zeros((scans.num_scans, 3)) if init is None else init
+    poses, _ = close_loops(scans.points, scans.valid, guess, min_gap=c.loop_min_gap, radius=c.loop_radius,
+                           max_candidates=c.loop_max_candidates, min_overlap=c.loop_min_overlap,
+                           inlier_distance=c.loop_inlier_distance, sequential_submap=c.loop_sequential_submap,
+                           sequential_method=c.loop_sequential_method,
+                           odometry_sigma=tuple(c.loop_odometry_sigma) or None,
+                           min_constraint=c.loop_min_constraint, progress=progress)
+    return poses
+
+
+@_method("icp-planar", (3,), "ICP over (x, z, yaw) with yaw hypotheses", "3D, planar poses")
+def _icp_planar(scans, cfg, init=None, progress=None):
+    if scans.pose_dof != 3:
+        raise ConfigError("icp-planar estimates planar [x, z, theta] poses: it needs 3-DoF scans (pose_dof 3)")
+    from deepmapping.methods.icp_planar import incremental_icp_planar
+
+    return incremental_icp_planar(_clouds(scans), init=init, yaw_hypotheses_deg=cfg.icp.yaw_hypotheses_deg,
+                                  progress=progress, **_scales(cfg))
+
+
+@_method("multiway", (3,), "Open3D's multiway registration (pairwise ICP and a pose graph)", "3D")
+def _multiway(scans, cfg, init=None, progress=None):
+    from deepmapping.methods.multiway import multiway_registration
+
+    return multiway_registration(_clouds(scans), init=init, edges=cfg.icp.multiway_edges, progress=progress,
+                                 **_scales(cfg))
+
+
+@_method("kiss-icp", (3,), "KISS-ICP's LiDAR odometry", "3D sequences, KISS-ICP odometry")
+def _kiss_icp(scans, cfg, init=None, progress=None):
+    from deepmapping.methods.kiss_odometry import kiss_icp_poses
+
+    return kiss_icp_poses(_clouds(scans), init=init, voxel_size=cfg.icp.voxel_size, threads=cfg.threads or 1,
+                          progress=progress)
+
+
+CLASSICAL = tuple(name for name, m in METHODS.items() if m.run is not None)
+
+
+def get_method(name: str) -> Method:
+    if name not in METHODS:
+        raise ConfigError(f"unknown method {name!r} (one of: {', '.join(METHODS)})")
+    return METHODS[name]
+
+
+def run_classical(scans: ScanSet, cfg: Config, name: str, init=None, progress=None) -> np.ndarray:
+    """The poses of a classical method (``CLASSICAL``); ConfigError for data it does not handle."""
+    m = get_method(name)
+    if m.run is None:
+        raise ConfigError(f"{name} is not a classical registration method (one of: {', '.join(CLASSICAL)})")
+    m.check(scans)
+    return m.run(scans, cfg, init, progress)

@@ -1,0 +1,58 @@
+"""The method registry (methods.registry): one list of methods behind the config, the CLI and api."""
+
+import typing
+
+import numpy as np
+import pytest
+
+from deepmapping import config as cfgmod
+from deepmapping.api import BASELINES, baseline_poses
+from deepmapping.cli.main import METHODS as CLI_HELP
+from deepmapping.config import load_config
+from deepmapping.data import ScanSet
+from deepmapping.errors import ConfigError
+from deepmapping.methods.registry import CLASSICAL, METHODS, get_method, run_classical
+
+
+def test_the_config_and_the_cli_name_every_registered_method():
+    assert set(typing.get_args(cfgmod.Method)) == set(METHODS)
+    assert set(typing.get_args(cfgmod.WarmStart)) == set(CLASSICAL) | {"none", "file", "auto"}
+    assert set(BASELINES) == set(CLASSICAL) == {n for n, m in METHODS.items() if m.run is not None}
+    assert {"deepmapping", "direct"} <= set(METHODS) - set(CLASSICAL)
+    for m in METHODS.values():
+        assert m.label in CLI_HELP and m.summary and set(m.dims) <= {2, 3} and m.dims
+
+
+def _square_scans(k=4, n=64):
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    ring = np.stack([3 * np.cos(t), 2 * np.sin(t)], axis=1).astype(np.float32)
+    return ScanSet(points=np.repeat(ring[None], k, axis=0), valid=np.ones((k, n), bool))
+
+
+def test_a_method_refuses_data_of_the_other_dimension_by_name():
+    scans = _square_scans()
+    for name in ("multiway", "icp-planar", "kiss-icp"):
+        with pytest.raises(ConfigError, match=f"{name} is implemented for 3D scans only"):
+            run_classical(scans, load_config("default"), name)
+    with pytest.raises(ConfigError, match="unknown method 'gicp'"):
+        get_method("gicp")
+    with pytest.raises(ConfigError, match="not a classical registration method"):
+        run_classical(scans, load_config("default"), "deepmapping")
+
+
+def test_registered_2d_icp_leaves_identical_scans_in_place():
+    scans = _square_scans()
+    for name in ("icp-point", "icp-plane"):
+        poses = baseline_poses(scans, load_config("default"), name)
+        assert poses.shape == (4, 3) and np.abs(poses).max() < 1e-6
+
+
+def test_the_readme_lists_every_registered_method():
+    from pathlib import Path
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
+    row = next(line for line in readme.splitlines() if line.startswith("| `--method "))
+    listed = row.split("`")[1].removeprefix("--method ").split("\\|")
+    assert listed == list(METHODS)
+    ws = next(line for line in readme.splitlines() if line.startswith("| `--warm-start "))
+    assert set(ws.split("`")[1].removeprefix("--warm-start ").split("\\|")) == set(CLASSICAL) | {"file", "none"}
