@@ -16,7 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from deepmapping.errors import ConfigError
 
 Method = Literal["deepmapping", "direct", "icp-point", "icp-plane", "icp-planar", "multiway", "loop-closure",
-                 "kiss-icp"]
+                 "kiss-icp", "goicp", "pso"]
 WarmStart = Literal["none", "icp-point", "icp-plane", "icp-planar", "multiway", "loop-closure", "kiss-icp", "file",
                     "auto"]
 

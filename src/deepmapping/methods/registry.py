@@ -18,7 +18,7 @@ from deepmapping.config import Config
 from deepmapping.data import ScanSet
 from deepmapping.errors import ConfigError
 
-__all__ = ["Method", "METHODS", "CLASSICAL", "get_method", "run_classical"]
+__all__ = ["Method", "METHODS", "CLASSICAL", "WARM_STARTS", "get_method", "run_classical"]
 
 Run = Callable[[ScanSet, Config, "np.ndarray | None", "Callable[[int, int], None] | None"], np.ndarray]
 
@@ -31,6 +31,7 @@ class Method:
     scope: str = ""  # the data it is for, when not every kind (the CLI's help: 'loop-closure (2D logs)')
     run: Run | None = None  # None: the solver's (deepmapping, direct)
     hint_other_dims: str = ""  # added to the error on data of the other dimension
+    warm_start: bool = True  # classical methods: also offered as a warm start (--warm-start NAME)
 
     @property
     def label(self) -> str:
@@ -47,9 +48,10 @@ class Method:
 METHODS: dict[str, Method] = {}
 
 
-def _method(name: str, dims: tuple[int, ...], summary: str, scope: str = "", hint_other_dims: str = ""):
+def _method(name: str, dims: tuple[int, ...], summary: str, scope: str = "", hint_other_dims: str = "",
+            warm_start: bool = True):
     def add(run: Run | None) -> Run | None:
-        METHODS[name] = Method(name, dims, summary, scope, run, hint_other_dims)
+        METHODS[name] = Method(name, dims, summary, scope, run, hint_other_dims, warm_start)
         return run
     return add
 
@@ -133,7 +135,44 @@ def _kiss_icp(scans, cfg, init=None, progress=None):
                           progress=progress)
 
 
+GOICP_S_PER_SCAN = 0.5  # Go-ICP's budget when optim.max_time_s is unset (what the 2D experiment gives it)
+
+
+def _pairwise_settings(scans: ScanSet, cfg: Config) -> dict:
+    """Go-ICP and PSO as the paper's 2D baselines (and our 2D experiment): each scan onto its
+    predecessor, 10 % of the points trimmed, the whole sequence within ``optim.max_time_s``;
+    distance transforms of 1024^2 cells for scans of 256+ beams, 512^2 below."""
+    return {"time_budget_s": cfg.optim.max_time_s, "trim_fraction": 0.1,
+            "dt_size": 1024 if scans.points.shape[1] >= 256 else 512}
+
+
+@_method("goicp", (2,), "Go-ICP, globally optimal pairwise registration by branch and bound, motions chained",
+         "2D, pairwise", warm_start=False)
+def _goicp(scans, cfg, init=None, progress=None):
+    """Unset ``optim.max_time_s``: GOICP_S_PER_SCAN per scan (to optimality can take hours). Each pair
+    starts with ICP from the constant-velocity guess, so a short budget still returns ICP's pose."""
+    from deepmapping.methods.goicp import incremental_goicp
+
+    settings = _pairwise_settings(scans, cfg)
+    if settings["time_budget_s"] is None:
+        settings["time_budget_s"] = GOICP_S_PER_SCAN * scans.num_scans
+    poses, _ = incremental_goicp(scans.points, scans.valid, mse_threshold=1e-5, progress=progress, **settings)
+    return poses
+
+
+@_method("pso", (2,), "particle swarm registration of each scan onto its predecessor, motions chained",
+         "2D, pairwise", warm_start=False)
+def _pso(scans, cfg, init=None, progress=None):
+    """Unset ``optim.max_time_s``: one round (swarm) per pair."""
+    from deepmapping.methods.pso import incremental_pso
+
+    poses, _ = incremental_pso(scans.points, scans.valid, seed=cfg.seed, progress=progress,
+                               **_pairwise_settings(scans, cfg))
+    return poses
+
+
 CLASSICAL = tuple(name for name, m in METHODS.items() if m.run is not None)
+WARM_STARTS = tuple(name for name in CLASSICAL if METHODS[name].warm_start)
 
 
 def get_method(name: str) -> Method:
