@@ -149,21 +149,20 @@ def _register(scans, method: str, epochs, time_budget_s, seed) -> tuple[dict, di
 
 def _pairwise(scans, method: str, time_budget_s, seed) -> tuple[dict, dict]:
     from deepmapping.evaluation.metrics import evaluate
+    from deepmapping.methods.registry import pairwise_settings
 
-    # distance transforms of 1024^2 cells (~2.9 px on these maps at 512^2): building one per pair
-    # takes ~0.1 s, a small part of a full-size pair's budget but all of a quick one's
-    dt_size = 1024 if scans.points.shape[1] >= 256 else 512
+    # distance transforms of 1024^2 cells at full size: building one per pair takes ~0.1 s, a small
+    # part of a full-size pair's budget but all of a quick one's (hence 512^2 below 256 beams)
+    settings = pairwise_settings(scans, time_budget_s)
     t0 = time.perf_counter()
     if method == "goicp":
         from deepmapping.methods.goicp import incremental_goicp
 
-        poses, info = incremental_goicp(scans.points, scans.valid, time_budget_s=time_budget_s,
-                                        trim_fraction=0.1, mse_threshold=1e-5, dt_size=dt_size)
+        poses, info = incremental_goicp(scans.points, scans.valid, mse_threshold=1e-5, **settings)
     else:
         from deepmapping.methods.pso import incremental_pso
 
-        poses, info = incremental_pso(scans.points, scans.valid, time_budget_s=time_budget_s, seed=seed,
-                                      trim_fraction=0.1, dt_size=dt_size)
+        poses, info = incremental_pso(scans.points, scans.valid, seed=seed, **settings)
     runtime = time.perf_counter() - t0
     metrics = evaluate(poses, scans.gt_poses, scans.points, scans.valid, unit_scale=scans.unit_scale,
                        success_threshold=SUCCESS_PX)

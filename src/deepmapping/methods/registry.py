@@ -18,7 +18,8 @@ from deepmapping.config import Config
 from deepmapping.data import ScanSet
 from deepmapping.errors import ConfigError
 
-__all__ = ["Method", "METHODS", "CLASSICAL", "WARM_STARTS", "get_method", "run_classical"]
+__all__ = ["Method", "METHODS", "CLASSICAL", "WARM_STARTS", "get_method", "run_classical",
+           "pairwise_settings"]
 
 Run = Callable[[ScanSet, Config, "np.ndarray | None", "Callable[[int, int], None] | None"], np.ndarray]
 
@@ -138,11 +139,11 @@ def _kiss_icp(scans, cfg, init=None, progress=None):
 GOICP_S_PER_SCAN = 0.5  # Go-ICP's budget when optim.max_time_s is unset (what the 2D experiment gives it)
 
 
-def _pairwise_settings(scans: ScanSet, cfg: Config) -> dict:
-    """Go-ICP and PSO as the paper's 2D baselines (and our 2D experiment): each scan onto its
-    predecessor, 10 % of the points trimmed, the whole sequence within ``optim.max_time_s``;
-    distance transforms of 1024^2 cells for scans of 256+ beams, 512^2 below."""
-    return {"time_budget_s": cfg.optim.max_time_s, "trim_fraction": 0.1,
+def pairwise_settings(scans: ScanSet, time_budget_s: float | None) -> dict:
+    """Go-ICP and PSO as the paper's 2D baselines (here and in the 2D experiment): each scan onto its
+    predecessor, 10 % of the points trimmed, the whole sequence within ``time_budget_s``; distance
+    transforms of 1024^2 cells (~2.9 px on the paper's maps) for scans of 256+ beams, 512^2 below."""
+    return {"time_budget_s": time_budget_s, "trim_fraction": 0.1,
             "dt_size": 1024 if scans.points.shape[1] >= 256 else 512}
 
 
@@ -153,7 +154,7 @@ def _goicp(scans, cfg, init=None, progress=None):
     starts with ICP from the constant-velocity guess, so a short budget still returns ICP's pose."""
     from deepmapping.methods.goicp import incremental_goicp
 
-    settings = _pairwise_settings(scans, cfg)
+    settings = pairwise_settings(scans, cfg.optim.max_time_s)
     if settings["time_budget_s"] is None:
         settings["time_budget_s"] = GOICP_S_PER_SCAN * scans.num_scans
     poses, _ = incremental_goicp(scans.points, scans.valid, mse_threshold=1e-5, progress=progress, **settings)
@@ -167,7 +168,7 @@ def _pso(scans, cfg, init=None, progress=None):
     from deepmapping.methods.pso import incremental_pso
 
     poses, _ = incremental_pso(scans.points, scans.valid, seed=cfg.seed, progress=progress,
-                               **_pairwise_settings(scans, cfg))
+                               **pairwise_settings(scans, cfg.optim.max_time_s))
     return poses
 
 
