@@ -47,7 +47,9 @@ setup() {
 setup
 case "${1:-demo}" in
   demo) shift || true; exec .venv/bin/deepmapping demo "$@" ;;
-  test) shift || true; exec .venv/bin/python -m pytest -q -n 2 "$@" ;;
+  test) shift || true
+    .venv/bin/ruff check -q src tests benchmarks  # style and lint (pyproject [tool.ruff])
+    exec .venv/bin/python -m pytest -q -n 2 "$@" ;;
   shell) exec bash --rcfile <(echo 'source .venv/bin/activate') ;;
   *) exec .venv/bin/deepmapping "$@" ;;
 esac

@@ -124,7 +124,7 @@ def _cell(s: dict, what: str) -> str:
 
 
 def markdown(results: dict, args) -> str:
-    lines = [f"# Freiburg SLAM benchmark logs: relations errors (Kümmerle et al. 2009)", "",
+    lines = ["# Freiburg SLAM benchmark logs: relations errors (Kümmerle et al. 2009)", "",
              f"{date.today()}, {platform.machine()}, {platform.processor() or 'cpu'}, {args.threads} torch "
              f"thread(s), keyframes `{args.keyframes}`; `python benchmarks/carmen.py {' '.join(args.argv)}`", "",
              "Errors: mean ± std / median over the relations whose two scans the trajectory has "

@@ -6,10 +6,14 @@ command on one of the paper's trajectories with 1 and with 2 torch threads, seed
 Same seed and thread count give bit-identical poses (tests/test_solver.py, tests/test_cli.py);
 different thread counts sum floats in a different order, so runs part and end in nearby minima.
 """
-import sys, time, json, numpy as np
-from deepmapping.api import register, evaluate_poses
+import json
+import sys
+import time
+
+from deepmapping.api import evaluate_poses, register
 from deepmapping.config import load_config
 from deepmapping.sim.dataset import paper_trajectory
+
 kind = sys.argv[1]
 out = {}
 if kind == "2d":

@@ -33,7 +33,8 @@ METHODS = {  # name -> config overrides on the default-3d profile
     "deepmapping": {},
     "direct": {"method": "direct"},
 }
-BUNNY_SETTINGS = {"lnet.pivot": "centroid", "lnet.pointnet_lr_factor": 0.02, "loss.near_hit_samples": 8, "loss.near_hit_distance": 0.2}
+BUNNY_SETTINGS = {"lnet.pivot": "centroid", "lnet.pointnet_lr_factor": 0.02,
+                  "loss.near_hit_samples": 8, "loss.near_hit_distance": 0.2}
 
 
 def coarse_start(scans, deg: float = 10.0, mm: float = 10.0, seed: int = 0) -> np.ndarray:
@@ -112,7 +113,8 @@ def threedtk(args, sets) -> dict:
 def _summary(errors: list[dict]) -> str:
     rot = [e["rot_deg"] for e in errors[1:]]
     tr = [e["trans_mm"] for e in errors[1:]]
-    return f"rotation median {np.median(rot):.2f} max {max(rot):.2f} deg, translation median {np.median(tr):.1f} max {max(tr):.1f} mm"
+    return (f"rotation median {np.median(rot):.2f} max {max(rot):.2f} deg, "
+            f"translation median {np.median(tr):.1f} max {max(tr):.1f} mm")
 
 
 def main(argv=None) -> dict:

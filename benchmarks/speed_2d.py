@@ -22,8 +22,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import platform
+import re
 import time
 from concurrent.futures import ProcessPoolExecutor
 from datetime import date

@@ -5,8 +5,8 @@ import os
 THREADS = int(os.environ.get("DEEPMAPPING_TEST_THREADS", "1"))
 os.environ.setdefault("OMP_NUM_THREADS", str(THREADS))  # Open3D (3D baselines) would use every core under pytest -n 2
 
-import pytest
-import torch
+import pytest  # noqa: E402  (after the thread settings above)
+import torch  # noqa: E402
 
 torch.set_num_threads(THREADS)  # tests run in parallel (pytest -n 2): one thread each by default
 

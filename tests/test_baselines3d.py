@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from deepmapping.errors import ConfigError, InputError
+from deepmapping.evaluation.metrics3d import ate_3d
 from deepmapping.geometry import se3
 from deepmapping.methods.icp3d import incremental_icp_3d
-from deepmapping.evaluation.metrics3d import ate_3d
 from deepmapping.methods.multiway import build_pose_graph, edge_pairs, multiway_registration
 from deepmapping.methods.open3d_utils import require_open3d, to_pcd
-from deepmapping.errors import ConfigError, InputError
 
 K = 5
 

@@ -10,13 +10,13 @@ import pytest
 from typer.testing import CliRunner
 
 from deepmapping.cli.main import app
-from deepmapping.geometry import se2
-from deepmapping.methods.keyframes import nearest_keyframe, poses_for_all_scans, select_keyframes
-from deepmapping.evaluation.relations import Relations, read_relations, score_relations
 from deepmapping.errors import ConfigError, InputError
+from deepmapping.evaluation.relations import Relations, read_relations, score_relations
+from deepmapping.geometry import se2
 from deepmapping.io.carmen import match_scans, read_carmen
 from deepmapping.io.loaders import detect_format, load_scans
 from deepmapping.io.poses3d import read_tum_poses, write_tum_poses
+from deepmapping.methods.keyframes import nearest_keyframe, poses_for_all_scans, select_keyframes
 
 CARMEN = Path(__file__).resolve().parent / "data" / "carmen"  # excerpts (tests/data/make_excerpts.py)
 

@@ -163,7 +163,8 @@ def test_simulate_writes_authors_layout(data16):
     assert pts.shape == (256, 3) and np.all(pts[:, 2] == 0)
 
 
-COMMON_FILES = ("poses.npy", "poses.txt", "map.ply", "map.pcd", "poses_kitti.txt", "poses_tum.txt", "map.png", "config.yaml", "run.json", "metrics.json")
+COMMON_FILES = ("poses.npy", "poses.txt", "map.ply", "map.pcd", "poses_kitti.txt", "poses_tum.txt", "map.png", "config.yaml",
+                "run.json", "metrics.json")
 TRAINED_FILES = ("occupancy.png", "curves.png", "checkpoint.pt", "history.csv")
 
 

@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+
 from test_cli import DM, assert_one_line_error, dm, dm_many, ok
 
 pytestmark = pytest.mark.skipif(DM is None, reason="the `deepmapping` console script is not installed")

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from deepmapping.config import load_config
-from deepmapping.geometry import se2
 from deepmapping.errors import ConfigError
+from deepmapping.geometry import se2
 
 
 def _cold(**over):

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from deepmapping.evaluation.metrics import ate, evaluate, point_distance, rotation_rmse_deg
 from deepmapping.geometry import se2
 from deepmapping.geometry.alignment import align_poses_2d, rigid_align
 from deepmapping.methods.icp import icp_2d, incremental_icp
-from deepmapping.evaluation.metrics import ate, evaluate, point_distance, rotation_rmse_deg
 
 
 def random_poses(rng, k, trans=5.0):
@@ -228,7 +228,9 @@ def raycast(pose, beams=256):
     d = np.stack([np.cos(ang + pose[2]), np.sin(ang + pose[2])], -1)  # (B, 2)
     a, e = seg[:, 0], seg[:, 1] - seg[:, 0]  # (S, 2)
     o = pose[:2]
-    cross = lambda u, v: u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+    def cross(u, v):
+        return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+
     den = cross(d[:, None], e[None])  # (B, S)
     with np.errstate(divide="ignore", invalid="ignore"):
         t = cross((a - o)[None], e[None]) / den

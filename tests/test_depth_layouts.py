@@ -13,10 +13,16 @@ from PIL import Image
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from deepmapping.geometry import se3
 from deepmapping.errors import ConfigError, InputError
-from deepmapping.io.depth import (INTRINSICS_PRESETS, DepthOptions, parse_frames, parse_image_size, pixel_grid,
-                                  select_frames)
+from deepmapping.geometry import se3
+from deepmapping.io.depth import (
+    INTRINSICS_PRESETS,
+    DepthOptions,
+    parse_frames,
+    parse_image_size,
+    pixel_grid,
+    select_frames,
+)
 from deepmapping.io.loaders import detect_format, load_scans
 from deepmapping.io.sevenscenes import load_7scenes
 from deepmapping.io.tum_rgbd import MAX_DT_S, load_tum_rgbd, match_timestamps

@@ -5,11 +5,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from deepmapping.api import evaluate_poses
-from deepmapping.geometry import se2, se3
+from deepmapping.data import ScanSet
 from deepmapping.evaluation.evo_metrics import ape, evo_metrics, rpe
 from deepmapping.evaluation.metrics import ate
 from deepmapping.evaluation.metrics3d import ate_3d
-from deepmapping.data import ScanSet
+from deepmapping.geometry import se2, se3
 
 
 def _traj2d(seed=0, k=40):

@@ -6,9 +6,16 @@ from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from deepmapping.geometry import se3
-from deepmapping.tools.export3d import (occupancy_grid, occupancy_mesh, read_occupancy_grid,
-                                        registered_cloud, scan_colors, write_mesh_ply,
-                                        write_occupancy_grid, write_registered_cloud)
+from deepmapping.tools.export3d import (
+    occupancy_grid,
+    occupancy_mesh,
+    read_occupancy_grid,
+    registered_cloud,
+    scan_colors,
+    write_mesh_ply,
+    write_occupancy_grid,
+    write_registered_cloud,
+)
 from deepmapping.tools.plots3d import plot_cloud_3d, plot_trajectories_3d, view_basis
 
 CENTRE, RADIUS = np.array([0.1, -0.2, 0.3]), 0.7

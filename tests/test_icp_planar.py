@@ -5,11 +5,11 @@ import pytest
 
 from deepmapping.api import auto_warm_start, baseline_poses
 from deepmapping.config import load_config
+from deepmapping.data import FullSequence, ScanSet
+from deepmapping.errors import ConfigError
 from deepmapping.geometry import se3
 from deepmapping.methods.icp3d import default_scales, prepare_clouds
 from deepmapping.methods.icp_planar import incremental_icp_planar, planar_params, register_pair_planar
-from deepmapping.data import FullSequence, ScanSet
-from deepmapping.errors import ConfigError
 from deepmapping.sim.rgbd import Intrinsics, render_depth
 from deepmapping.sim.scene3d import make_scene
 

@@ -8,12 +8,11 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from deepmapping.geometry import se3
 from deepmapping.errors import InputError
+from deepmapping.geometry import se3
 from deepmapping.io.bunny import bunny_pose_errors, is_bunny_folder, load_bunny, scan_centroids
 from deepmapping.io.ply import read_ply
-from deepmapping.io.threedtk import (is_3dtk_folder, load_3dtk, read_3d, read_frames, read_pose,
-                                     write_frames, write_pose)
+from deepmapping.io.threedtk import is_3dtk_folder, load_3dtk, read_3d, read_frames, read_pose, write_frames, write_pose
 
 DATA = Path(__file__).resolve().parent / "data"  # excerpts of ../shared/data (tests/data/make_excerpts.py)
 BUNNY, TDTK = DATA / "bunny", DATA / "3dtk"

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from deepmapping.geometry import se3
 from deepmapping.errors import InputError
+from deepmapping.geometry import se3
 from deepmapping.io.kitti import read_velodyne_bin, write_velodyne_bin
 from deepmapping.io.loaders import detect_format, load_scans
 from deepmapping.io.poses3d import write_kitti_poses
@@ -22,7 +22,8 @@ def sequence(tmp_path):
     for k, c in enumerate(clouds):
         write_velodyne_bin(seq / "velodyne" / f"{k:06d}.bin", c, rng.random(len(c)))
     lidar = np.stack([se3.from_rt(Rotation.from_rotvec([0, 0, 0.1 * k]).as_matrix(), [k, 0.5 * k, 0]) for k in range(3)])
-    (seq / "calib.txt").write_text("P0: " + " ".join(["0"] * 12) + "\nTr: " + " ".join(f"{v:.17g}" for v in TR[:3].ravel()) + "\n")
+    tr = " ".join(f"{v:.17g}" for v in TR[:3].ravel())
+    (seq / "calib.txt").write_text("P0: " + " ".join(["0"] * 12) + "\nTr: " + tr + "\n")
     (tmp_path / "poses").mkdir()
     write_kitti_poses(tmp_path / "poses" / "07.txt", TR @ lidar @ np.linalg.inv(TR))  # camera-0 poses
     return seq, clouds, lidar

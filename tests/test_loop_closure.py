@@ -5,13 +5,13 @@ import pytest
 
 from deepmapping.api import baseline_poses
 from deepmapping.config import load_config
+from deepmapping.data import ScanSet
+from deepmapping.errors import ConfigError
+from deepmapping.evaluation.metrics import ate
 from deepmapping.geometry import se2
 from deepmapping.methods.icp import incremental_icp
 from deepmapping.methods.loop_closure import close_loops
-from deepmapping.evaluation.metrics import ate
 from deepmapping.methods.pose_graph_2d import Edge, optimize_pose_graph
-from deepmapping.data import ScanSet
-from deepmapping.errors import ConfigError
 from deepmapping.sim.scanner import simulate_scans
 
 PX = 0.05  # metres per pixel
@@ -156,7 +156,8 @@ def test_constraint_is_low_in_a_corridor_and_high_in_a_room():
     xs = np.linspace(-5, 5, 300)
     corridor = np.concatenate([np.column_stack([xs, np.full_like(xs, -1.0)]), np.column_stack([xs, np.full_like(xs, 1.0)])])
     ys = np.linspace(-3, 3, 200)
-    room = np.concatenate([np.column_stack([xs[::2] * 0.6, np.full(150, -3.0)]), np.column_stack([xs[::2] * 0.6, np.full(150, 3.0)]),
+    room = np.concatenate([np.column_stack([xs[::2] * 0.6, np.full(150, -3.0)]),
+                           np.column_stack([xs[::2] * 0.6, np.full(150, 3.0)]),
                            np.column_stack([np.full_like(ys, -3.0), ys]), np.column_stack([np.full_like(ys, 3.0), ys])])
     ident = np.zeros(3)
     assert _constraint(corridor, corridor, cKDTree(corridor), ident, 0.1) < 0.05

@@ -4,10 +4,15 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from deepmapping.geometry import se3
 from deepmapping.errors import InputError
+from deepmapping.geometry import se3
 from deepmapping.io.poses3d import (
-    read_kitti_poses, read_poses_3d, read_tum_poses, write_kitti_poses, write_poses_3d, write_tum_poses,
+    read_kitti_poses,
+    read_poses_3d,
+    read_tum_poses,
+    write_kitti_poses,
+    write_poses_3d,
+    write_tum_poses,
 )
 
 

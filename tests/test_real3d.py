@@ -13,11 +13,10 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 
 def test_bunny_check_small():
-    from real_3d import BUNNY_SETTINGS, coarse_start
-
     from deepmapping.api import register
     from deepmapping.config import load_config
     from deepmapping.io.bunny import bunny_pose_errors, load_bunny, scan_centroids
+    from real_3d import BUNNY_SETTINGS, coarse_start
 
     scans = load_bunny(DATA / "bunny", max_points=300)
     centroids = scan_centroids(scans.points, scans.valid)
@@ -41,10 +40,9 @@ def test_bunny_check_small():
 
 
 def test_3dtk_check_small(tmp_path):
-    from test_cli import dm, ok
-
     from deepmapping.geometry import se3
     from deepmapping.io.threedtk import load_3dtk, read_frames
+    from test_cli import dm, ok
 
     out = tmp_path / "run"
     ok(dm("register", DATA / "3dtk", "--method", "icp-plane", "--warm-start", "file", "--out", out))

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from deepmapping.geometry import se3
 from deepmapping.evaluation.metrics3d import align_poses_3d, ate_3d, rotation_errors_deg
+from deepmapping.geometry import se3
 
 
 def random_poses(k, seed=0):

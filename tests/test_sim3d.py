@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from deepmapping.geometry import se3
 from deepmapping.errors import InputError
+from deepmapping.geometry import se3
 from deepmapping.io.lidar import is_lidar_folder, load_lidar
 from deepmapping.io.ply import write_ply
 from deepmapping.io.rgbd import is_rgbd_folder, load_rgbd

@@ -94,7 +94,7 @@ def _fit_mnet_bce(scans, poses, steps=150):
     trainer.opt = torch.optim.Adam(model.mnet.parameters(), lr=1e-3)
     idx = torch.arange(scans.num_scans)
     values = []
-    for i in range(steps):
+    for _ in range(steps):
         total, _, _ = trainer.loss(idx)
         trainer.opt.zero_grad()
         total.backward()

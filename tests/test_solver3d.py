@@ -182,9 +182,9 @@ def test_auto_warm_start_is_planar_icp_for_depth_images_and_icp_for_clouds(lidar
 def test_kiss_icp_warm_start_on_a_slow_lidar_sequence(tmp_path):
     """--warm-start kiss-icp: DeepMapping starts from KISS-ICP's odometry (a robot at 1 m/s, 10 Hz)."""
     from deepmapping.api import register
-    from deepmapping.methods.kiss_odometry import kiss_icp_poses
     from deepmapping.evaluation.metrics3d import ate_3d
     from deepmapping.io.lidar import load_lidar
+    from deepmapping.methods.kiss_odometry import kiss_icp_poses
     from deepmapping.sim.lidar import write_lidar_dataset
 
     write_lidar_dataset(tmp_path, num_trajectories=1, frames=12, seed=3, step_m=0.1)

@@ -9,8 +9,8 @@ from deepmapping.errors import InputError
 
 
 def run_evaluate(run_dir: Path, gt: Path | None = None) -> dict:
-    from deepmapping.config import load_config
     from deepmapping.api import evaluate_poses
+    from deepmapping.config import load_config
     from deepmapping.io.loaders import load_scans
     from deepmapping.io.poses import read_poses_npy
     from deepmapping.tools.run_dir import write_json

@@ -105,8 +105,8 @@ def register(
     format: Optional[str] = typer.Option(None, "--format", help="Loader name (default: picked from the path)."),
     keyframes: Optional[str] = typer.Option(None, help="Logs (CARMEN): which scans to register: all | every:K | "
                                             "motion:METRES,DEGREES | time:SECONDS (default motion:0.5,15)."),
-    non_keyframes: Optional[str] = typer.Option(None, help="Logs: the other scans' poses: icp (default: "
-                                                "odometry from the nearest keyframe, then matched to the keyframes around it) | odometry."),
+    non_keyframes: Optional[str] = typer.Option(None, help="Logs: the other scans' poses: icp (default: odometry from the "
+                                                "nearest keyframe, then matched to the keyframes around it) | odometry."),
     every: int = typer.Option(1, help="Depth images: keep every k-th frame (of the --frames range)."),
     frames: Optional[str] = typer.Option(None, help="Depth images: frames START:STOP, positions in the folder's "
                                          "frame list (0-based, STOP excluded; e.g. 0:48)."),
@@ -126,8 +126,8 @@ def register(
     """Register scans with DeepMapping or a baseline and write poses, map, pictures, metrics."""
     from deepmapping.cli import register_cmd
     from deepmapping.cli.common import parse_sets
-    from deepmapping.cli.report import print_metrics
     from deepmapping.cli.progress import console
+    from deepmapping.cli.report import print_metrics
     from deepmapping.tools.run_dir import default_run_dir
 
     depth = register_cmd.depth_options(every, frames, pixel_stride, image_size, max_depth, intrinsics)

@@ -73,9 +73,9 @@ def run_register(data: Path, out: Path, cfg, fmt, gt, resume: bool, plots: bool 
     cfg = cfg(scans.is_3d) if callable(cfg) else cfg
     load_s = time.perf_counter() - t_load
     from deepmapping.api import register, resolve_device
+    from deepmapping.errors import Interrupted
     from deepmapping.io.atomic import make_folder
     from deepmapping.io.lock import folder_lock
-    from deepmapping.errors import Interrupted
     from deepmapping.tools.run_dir import write_config, write_json, write_run
 
     if cfg.method in ("deepmapping", "direct"):

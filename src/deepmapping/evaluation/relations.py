@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from deepmapping.geometry import se2
 from deepmapping.errors import InputError
+from deepmapping.geometry import se2
 
 __all__ = ["Relations", "read_relations", "relation_errors", "score_relations", "LONG_RELATION_S"]
 

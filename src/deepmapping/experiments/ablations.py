@@ -90,7 +90,8 @@ def report(out: Path, results: dict[str, dict], quick: bool) -> Path:
     n = len(s["trajectories"])
     sections = [
         f"{'Quick smoke run (not the paper sizes): ' if quick else ''}{n} simulated 2D "
-        f"trajector{'y' if n == 1 else 'ies'} ({', '.join(map(str, s['trajectories']))}) of {s['poses']} poses x {s['beams']} beams "
+        f"trajector{'y' if n == 1 else 'ies'} ({', '.join(map(str, s['trajectories']))}) "
+        f"of {s['poses']} poses x {s['beams']} beams "
         f"(trajectory t on procedural map t % 3), DeepMapping from a cold start (identity poses, as the paper), "
         f"{s['epochs']} epochs, ATE logged every {s['eval_every']} epochs.",
         f"Settings: profile `{PROFILE}` (the paper's networks and loss: atrous-CNN L-Net "

@@ -26,7 +26,8 @@ Trajectory length. With these settings the cold start registers short trajectori
 20 px, 2.3 and 13.5 px; the others 35-81 px), and long ones not at all: 128 poses on a 512 px
 map ended at 162 px after 1000 epochs; 256 poses on a 1024 px map stayed at the identity's
 ~220 px (800 epochs with λ = 10, w = 1; still 216 px after 350 epochs with λ = 50, w = 2).
-The full run therefore uses 32- and 64-pose trajectories, not the paper's 256 poses, and the report separates the L-Nets whose registration succeeded (ATE < 20 px): one
+The full run therefore uses 32- and 64-pose trajectories, not the paper's 256 poses, and the report separates
+the L-Nets whose registration succeeded (ATE < 20 px): one
 that did not register its own trajectory says nothing about re-localization.
 
 Frames. The registered frame is arbitrary (cold start), so the registered trajectory is

@@ -55,8 +55,8 @@ def run(trajectory: int, method: str, stride: int, num_beams: int = 256, epochs:
         time_budget_s: float | None = None, seed: int = 0) -> dict:
     """One thinned trajectory registered by one method: exp_2d's row, the stride, and the
     median step (px) and turn (deg) between consecutive kept scans."""
-    from deepmapping.geometry import se2
     from deepmapping.experiments.exp_2d import run_trajectory
+    from deepmapping.geometry import se2
     from deepmapping.sim.dataset import paper_trajectory
 
     row = run_trajectory(trajectory, method, num_beams=num_beams, epochs=epochs, time_budget_s=time_budget_s,

@@ -35,9 +35,9 @@ from pathlib import Path
 
 import numpy as np
 
-from deepmapping.geometry import se3
 from deepmapping.data import ScanSet
 from deepmapping.errors import InputError
+from deepmapping.geometry import se3
 from deepmapping.io.clouds import check_max_points, pad_clouds, subsample
 
 __all__ = ["SENSOR_Y", "SENSOR_Z", "is_bunny_folder", "read_bun_conf", "load_bunny",

@@ -222,9 +222,9 @@ def load_carmen(path: str | os.PathLike, gt_path=None, init_path=None, keyframes
     the relations file next to the log (``<name>.relations``) for scoring. ``non_keyframes``:
     how the other scans get their pose, "odometry" from the nearest keyframe, or "icp" (then
     matched to that keyframe's scan)."""
-    from deepmapping.methods.keyframes import select_keyframes
     from deepmapping.data import FullSequence, ScanSet
     from deepmapping.errors import ConfigError
+    from deepmapping.methods.keyframes import select_keyframes
 
     path = Path(path)
     if gt_path is not None or init_path is not None:

@@ -18,8 +18,8 @@ from typing import IO
 
 import numpy as np
 
-from deepmapping.geometry import se3
 from deepmapping.errors import InputError
+from deepmapping.geometry import se3
 from deepmapping.io.atomic import atomic_write, read_user_file, read_user_text
 
 __all__ = [

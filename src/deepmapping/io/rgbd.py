@@ -16,12 +16,19 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import numpy as np
-
 from deepmapping.data import ScanSet
 from deepmapping.errors import InputError
-from deepmapping.io.depth import (DepthOptions, as_path, camera_from, depth_scanset, natural_sorted, read_depth_png,
-                                  read_intrinsics_json, read_json, select_frames)
+from deepmapping.io.depth import (
+    DepthOptions,
+    as_path,
+    camera_from,
+    depth_scanset,
+    natural_sorted,
+    read_depth_png,
+    read_intrinsics_json,
+    read_json,
+    select_frames,
+)
 from deepmapping.io.poses3d import read_poses_3d
 
 __all__ = ["is_rgbd_folder", "load_rgbd", "read_json", "read_intrinsics_json", "read_depth_png", "load_pose_files",

@@ -32,11 +32,11 @@ from typing import IO
 
 import numpy as np
 
-from deepmapping.geometry import se3
 from deepmapping.data import ScanSet
 from deepmapping.errors import InputError
-from deepmapping.io.clouds import check_max_points, pad_clouds, subsample
+from deepmapping.geometry import se3
 from deepmapping.io.atomic import atomic_write, read_user_text
+from deepmapping.io.clouds import check_max_points, pad_clouds, subsample
 
 __all__ = ["is_3dtk_folder", "read_3d", "read_pose", "write_pose", "read_frames", "write_frames", "load_3dtk"]
 

@@ -22,9 +22,9 @@ from typing import Callable
 
 import numpy as np
 
+from deepmapping.errors import ConfigError, InputError
 from deepmapping.geometry import se3
 from deepmapping.methods.open3d_utils import quiet_open3d, to_pcd
-from deepmapping.errors import ConfigError, InputError
 
 __all__ = ["incremental_icp_3d", "check_clouds", "check_init", "Scales", "default_scales", "point_spacing",
            "prepare_clouds", "register_pair", "plausible"]

@@ -17,8 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from deepmapping.geometry import se2
 from deepmapping.errors import ConfigError
+from deepmapping.geometry import se2
 
 __all__ = ["parse_keyframes", "select_keyframes", "nearest_keyframe", "poses_for_all_scans", "refine_by_scan_matching"]
 

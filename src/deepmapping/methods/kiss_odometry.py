@@ -15,8 +15,8 @@ from typing import Callable
 
 import numpy as np
 
-from deepmapping.methods.icp3d import check_clouds, check_init
 from deepmapping.errors import ConfigError
+from deepmapping.methods.icp3d import check_clouds, check_init
 
 __all__ = ["kiss_icp_poses", "kiss_config"]
 

@@ -43,7 +43,8 @@ def _overlap(src, tgt_tree, pose, distance):
 def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float = 4.0, max_candidates: int = 3,
                 min_overlap: float = 0.7, inlier_distance: float = 0.1, submap_half_width: int = 2,
                 sequential_submap: int = 5, sequential_method: str = "plane",
-                odometry_sigma: tuple[float, float] | None = (0.1, 5.0), min_constraint: float = 0.2, progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, list[Edge]]:
+                odometry_sigma: tuple[float, float] | None = (0.1, 5.0), min_constraint: float = 0.2,
+                progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, list[Edge]]:
     """Poses (K, 3) after loop closing, and the pose-graph edges (sequential and loop closures).
 
     points (K, N, 2) and valid (K, N) in metres; init_poses (K, 3): odometry (or any guess),

@@ -14,10 +14,10 @@ from typing import Callable
 
 import numpy as np
 
+from deepmapping.errors import ConfigError
 from deepmapping.geometry import se3
 from deepmapping.methods.icp3d import check_clouds, check_init, default_scales, plausible, prepare_clouds, register_pair
 from deepmapping.methods.open3d_utils import quiet_open3d
-from deepmapping.errors import ConfigError
 
 __all__ = ["multiway_registration", "build_pose_graph", "edge_pairs"]
 

@@ -150,9 +150,9 @@ def write_lidar_dataset(out_dir: str | os.PathLike, num_trajectories: int = 10, 
                         beams: int = 16, azimuth_res_deg: float = 1.0, max_range_m: float = 20.0,
                         noise_std_m: float = 0.0, step_m: float = 0.4, trajectories_per_scene: int = 2) -> list[Path]:
     """Write ``traj_000/ ...`` folders (scans/NNNNNN.ply, gt_poses.txt, meta.json); scene seeds as in sim.rgbd."""
+    from deepmapping.io.atomic import write_json
     from deepmapping.io.ply import write_ply
     from deepmapping.io.poses3d import write_kitti_poses
-    from deepmapping.io.atomic import write_json
     from deepmapping.sim.scene3d import make_scene
 
     cfg = LidarConfig(beams, None, azimuth_res_deg, max_range_m, 0.1, noise_std_m)

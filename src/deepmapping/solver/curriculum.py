@@ -16,8 +16,8 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 import torch
 
-from deepmapping.geometry import se2
 from deepmapping.errors import ConfigError
+from deepmapping.geometry import se2
 from deepmapping.solver.geometry import planar_matrix, transform, translation
 from deepmapping.solver.loss import chamfer
 

@@ -1,6 +1,7 @@
 """Everything a run writes into its folder, each file written atomically.
 
-poses.npy / poses.txt / poses_kitti.txt / poses_tum.txt (and all_scans_* for keyframed logs), map.ply / map.pcd, map.png, occupancy.png, curves.png, history.csv,
+poses.npy / poses.txt / poses_kitti.txt / poses_tum.txt (and all_scans_* for keyframed logs), map.ply / map.pcd,
+map.png, occupancy.png, curves.png, history.csv,
 config.yaml, run.json and (when ground truth is known) metrics.json. The checkpoint
 (checkpoint.pt) is written by the trainer while it runs.
 """
@@ -13,8 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from deepmapping.api import Result
-from deepmapping.geometry import se2
 from deepmapping.data import ScanSet
+from deepmapping.geometry import se2
 from deepmapping.io.atomic import make_folder, write_json, write_text
 from deepmapping.tools.run_files import write_config, write_history_csv
 
