@@ -91,6 +91,7 @@ def _on_reference(data: Path, log: str, scans, poses) -> dict:
     log): the like-for-like comparison with the reference row (intel: 90 of 2984)."""
     from deepmapping.evaluation.relations import Relations, read_relations, score_relations
     from deepmapping.io.carmen import match_scans, read_carmen
+    from deepmapping.methods.keyframes import place_all_scans
 
     raw = read_carmen(log_file(data, log))
     idx = match_scans(read_carmen(data / "corrected" / CORRECTED[log]), raw)
@@ -100,7 +101,7 @@ def _on_reference(data: Path, log: str, scans, poses) -> dict:
     sub = Relations([a for a, k in zip(rel.stamp_i, keep) if k], [b for b, k in zip(rel.stamp_j, keep) if k],
                     rel.motion[np.array(keep)], rel.path)
     seq = scans.sequence
-    return score_relations(sub, seq.stamps, seq.poses_for_all_scans(poses))
+    return score_relations(sub, seq.stamps, place_all_scans(seq, poses))
 
 
 def _reference(data: Path, log: str) -> dict:

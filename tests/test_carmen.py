@@ -16,7 +16,7 @@ from deepmapping.geometry import se2
 from deepmapping.io.carmen import match_scans, read_carmen
 from deepmapping.io.loaders import detect_format, load_scans
 from deepmapping.io.poses3d import read_tum_poses, write_tum_poses
-from deepmapping.methods.keyframes import nearest_keyframe, poses_for_all_scans, select_keyframes
+from deepmapping.sequence import nearest_keyframe, poses_for_all_scans, select_keyframes
 
 CARMEN = Path(__file__).resolve().parent / "data" / "carmen"  # excerpts (tests/data/make_excerpts.py)
 

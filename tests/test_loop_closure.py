@@ -91,7 +91,8 @@ def test_loop_closure_method_is_2d_only():
 
 
 def test_non_keyframes_matched_to_their_keyframe(ring):
-    from deepmapping.methods.keyframes import poses_for_all_scans, refine_by_scan_matching
+    from deepmapping.methods.keyframes import refine_by_scan_matching
+    from deepmapping.sequence import poses_for_all_scans
 
     points, valid, gt, odom = ring
     keyframes = np.arange(0, len(gt), 5)
@@ -107,7 +108,8 @@ def test_non_keyframes_matched_to_their_keyframe(ring):
 def test_non_keyframes_recover_an_odometry_turn_error(ring):
     """Wheel slip: the odometry of the non-keyframes after keyframe 20 is 15 degrees off (as on
     fr079); matching against the keyframes around them still places them within 1 degree."""
-    from deepmapping.methods.keyframes import poses_for_all_scans, refine_by_scan_matching
+    from deepmapping.methods.keyframes import refine_by_scan_matching
+    from deepmapping.sequence import poses_for_all_scans
 
     points, valid, gt, _ = ring
     keyframes = np.arange(0, len(gt), 5)

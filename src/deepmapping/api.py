@@ -15,6 +15,7 @@ import numpy as np
 from deepmapping.config import Config, load_config
 from deepmapping.data import ScanSet
 from deepmapping.errors import ConfigError, InputError
+from deepmapping.methods.keyframes import place_all_scans
 from deepmapping.methods.registry import CLASSICAL, run_classical
 
 
@@ -275,7 +276,7 @@ def evaluate_relations(scans: ScanSet, poses: np.ndarray, relations_path=None) -
     path = relations_path or (seq.relations_path if seq is not None else None)
     if seq is None or path is None:
         raise InputError(f"{scans.source}: no relations file to score against")
-    scores = score_relations(read_relations(path), seq.stamps, seq.poses_for_all_scans(poses))
+    scores = score_relations(read_relations(path), seq.stamps, place_all_scans(seq, poses))
     return {"relations": scores, "relations_file": str(path), "unit": scans.unit}
 
 

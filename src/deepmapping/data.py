@@ -29,21 +29,6 @@ class FullSequence:
     placement: str = "icp"  # non-keyframes: "odometry" (from the nearest keyframe) or "icp" (then refined)
     _cache: tuple = field(default=(None, None), repr=False, compare=False)
 
-    def poses_for_all_scans(self, keyframe_poses: np.ndarray) -> np.ndarray:
-        """(S, 3): keyframes at ``keyframe_poses``, the others placed by odometry from their nearest
-        keyframe, then (placement "icp") matched to that keyframe's scan."""
-        from deepmapping.methods.keyframes import poses_for_all_scans, refine_by_scan_matching
-
-        kp = np.asarray(keyframe_poses, dtype=np.float64)
-        key = kp.tobytes()
-        if self._cache[0] == key:
-            return self._cache[1].copy()
-        out = poses_for_all_scans(self.keyframes, kp, self.odometry, self.timestamps)
-        if self.placement == "icp" and self.points is not None:
-            out = refine_by_scan_matching(out, self.keyframes, self.timestamps, self.points, self.valid)
-        self._cache = (key, out)
-        return out.copy()
-
 
 @dataclass
 class ScanSet:

@@ -216,7 +216,7 @@ def relations_next_to(path: Path) -> Path | None:
 
 def load_carmen(path: str | os.PathLike, gt_path=None, init_path=None, keyframes: str | None = None,
                 non_keyframes: str = "icp"):
-    """A CARMEN log as a 2D ScanSet of its keyframes (``keyframes`` spec, see methods.keyframes;
+    """A CARMEN log as a 2D ScanSet of its keyframes (``keyframes`` spec, see deepmapping.sequence;
     default ``motion:0.5,15``). init_poses = the log's laser poses (odometry: the warm start);
     ``sequence`` keeps every scan (timestamps, odometry) so a pose can be written for each, and
     the relations file next to the log (``<name>.relations``) for scoring. ``non_keyframes``:
@@ -224,7 +224,7 @@ def load_carmen(path: str | os.PathLike, gt_path=None, init_path=None, keyframes
     matched to that keyframe's scan)."""
     from deepmapping.data import FullSequence, ScanSet
     from deepmapping.errors import ConfigError
-    from deepmapping.methods.keyframes import select_keyframes
+    from deepmapping.sequence import select_keyframes
 
     path = Path(path)
     if gt_path is not None or init_path is not None:

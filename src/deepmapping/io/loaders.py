@@ -326,7 +326,7 @@ def load_scans(
     init_path: initial poses (warm start), text ``x y theta`` / .npy / .mat (K, 3), always
     in the SAME units as the scan points (for the authors' layout: px/512, not px).
     keyframes: for sequences read from one log (CARMEN), which scans to register
-    (see :mod:`deepmapping.methods.keyframes`), and how the other scans are placed
+    (see :mod:`deepmapping.sequence`), and how the other scans are placed
     (``non_keyframes``: "icp" or "odometry"); other formats refuse both.
     depth: for depth-image folders (``DEPTH_FORMATS``), a ``io.depth.DepthOptions`` (frames, pixels,
     max depth, camera); other formats refuse one that is not the default.

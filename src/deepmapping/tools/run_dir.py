@@ -17,6 +17,7 @@ from deepmapping.api import Result
 from deepmapping.data import ScanSet
 from deepmapping.geometry import se2
 from deepmapping.io.atomic import make_folder, write_json, write_text
+from deepmapping.methods.keyframes import place_all_scans
 from deepmapping.tools.run_files import write_config, write_history_csv
 
 
@@ -70,7 +71,7 @@ def _write_trajectories(out: Path, scans: ScanSet, poses: np.ndarray) -> None:
         return
     from deepmapping.io.poses import write_pose_text, write_poses_npy
 
-    every = seq.poses_for_all_scans(poses)
+    every = place_all_scans(seq, poses)
     write_poses_npy(out / "all_scans_poses.npy", every)
     write_pose_text(out / "all_scans_poses.txt", every)
     write_kitti_poses(out / "all_scans_kitti.txt", se2.to_se3(every))
