@@ -49,6 +49,8 @@ case "${1:-demo}" in
   demo) shift || true; exec .venv/bin/deepmapping demo "$@" ;;
   test) shift || true
     .venv/bin/ruff check -q src tests benchmarks  # style and lint (pyproject [tool.ruff])
+    # import layers (pyproject [tool.importlinter]); prints its report only when a contract breaks
+    layers=$(.venv/bin/lint-imports --no-cache 2>&1) || { echo "$layers"; exit 1; }
     exec .venv/bin/python -m pytest -q -n 2 "$@" ;;
   shell) exec bash --rcfile <(echo 'source .venv/bin/activate') ;;
   *) exec .venv/bin/deepmapping "$@" ;;
