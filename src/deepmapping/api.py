@@ -15,8 +15,14 @@ import numpy as np
 from deepmapping.config import Config, load_config
 from deepmapping.data import ScanSet
 from deepmapping.errors import ConfigError, InputError
+from deepmapping.evaluation.evo_metrics import evo_metrics
+from deepmapping.evaluation.relations import read_relations, score_relations
+from deepmapping.io.poses import read_poses
+from deepmapping.io.poses3d import read_poses_3d
 from deepmapping.methods.keyframes import place_all_scans
 from deepmapping.methods.registry import CLASSICAL, run_classical
+from deepmapping.solver import resolution
+from deepmapping.solver.frame import Frame
 
 
 @dataclass
@@ -119,10 +125,7 @@ def auto_warm_start(scans: ScanSet) -> str:
 
 def _read_init(path, is_3d: bool) -> np.ndarray:
     if is_3d:
-        from deepmapping.io.poses3d import read_poses_3d
-
         return read_poses_3d(path)
-    from deepmapping.io.poses import read_poses
 
     return read_poses(path)
 
@@ -155,7 +158,6 @@ def _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_place=N
     import torch
 
     from deepmapping.solver import checkpoint as ckpt
-    from deepmapping.solver.frame import Frame
     from deepmapping.solver.model import DeepMappingModel
     from deepmapping.solver.trainer import Trainer
 
@@ -207,8 +209,6 @@ def _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_place=N
 def resolve_map(scans: ScanSet, cfg: Config, frame):
     """The M-Net settings the model is built with (a resolution that follows the data when
     ``mnet.fourier_period_spacings`` > 0, solver.resolution) and what run.json reports of them."""
-    from deepmapping.solver import resolution
-
     spacing = resolution.point_spacing(scans.points, scans.valid) if cfg.mnet.fourier_period_spacings > 0 else 0.0
     return resolution.resolve(cfg.mnet, spacing, frame.scale)
 
@@ -270,8 +270,6 @@ def _finish(scans: ScanSet, cfg: Config, poses: np.ndarray, t0: float, init) -> 
 def evaluate_relations(scans: ScanSet, poses: np.ndarray, relations_path=None) -> dict:
     """Kümmerle et al.'s relations metric of keyframe ``poses`` (2D), every scan of the input
     placed from its nearest keyframe by odometry (see methods.keyframes)."""
-    from deepmapping.evaluation.relations import read_relations, score_relations
-
     seq = scans.sequence
     path = relations_path or (seq.relations_path if seq is not None else None)
     if seq is None or path is None:
@@ -289,7 +287,6 @@ def evaluate_poses(scans: ScanSet, poses: np.ndarray, success_threshold: float |
         from deepmapping.evaluation.metrics3d import evaluate_3d as evaluate
     else:
         from deepmapping.evaluation.metrics import evaluate
-    from deepmapping.evaluation.evo_metrics import evo_metrics
 
     extra = {"avd_protocol": scans.grid_shape is not None and scans.pose_dof == 3} if scans.is_3d else {}
     metrics = evaluate(poses, scans.gt_poses, scans.points, scans.valid, unit_scale=scans.unit_scale,

@@ -6,13 +6,15 @@ from pathlib import Path
 
 import typer
 
+from deepmapping.geometry.alignment import align_poses_2d
+from deepmapping.sim import dataset, maps
+from deepmapping.tools.plots import plot_trajectories
+
 
 def run_demo(out: Path, poses: int, seed: int) -> None:
     from deepmapping.cli.progress import console
     from deepmapping.cli.register_cmd import build_config, run_register
     from deepmapping.cli.report import metrics_table
-    from deepmapping.sim import dataset, maps
-    from deepmapping.tools.plots import plot_trajectories
 
     data = out / "data"
     console.print(f"[bold]1/3[/] simulating {poses} scans on a procedural indoor map (seed {seed}) -> {data}")
@@ -24,7 +26,6 @@ def run_demo(out: Path, poses: int, seed: int) -> None:
         cfg = build_config("default", None, method, None, None, None, None, seed, {})
         scans, result = run_register(data, out / method, cfg, None, None, resume=False)
         rows[method], trajs[method] = result.metrics, result.poses * scans.unit_scale
-    from deepmapping.geometry.alignment import align_poses_2d
 
     gt = scans.gt_poses * [scans.unit_scale, scans.unit_scale, 1]
     trajs = {k: align_poses_2d(v * [1, 1, 1], gt) for k, v in trajs.items()}

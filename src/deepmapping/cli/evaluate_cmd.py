@@ -5,16 +5,17 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from deepmapping.api import evaluate_poses, evaluate_relations
+from deepmapping.config import load_config
 from deepmapping.errors import InputError
+from deepmapping.io.depth import DepthOptions
+from deepmapping.io.loaders import load_scans
+from deepmapping.io.poses import read_poses_npy
+from deepmapping.io.poses3d import read_poses_3d
+from deepmapping.tools.run_dir import write_json
 
 
 def run_evaluate(run_dir: Path, gt: Path | None = None) -> dict:
-    from deepmapping.api import evaluate_poses
-    from deepmapping.config import load_config
-    from deepmapping.io.loaders import load_scans
-    from deepmapping.io.poses import read_poses_npy
-    from deepmapping.tools.run_dir import write_json
-
     info_path = run_dir / "run.json"
     if not info_path.is_file():
         raise InputError(f"{run_dir}: not a run folder (no run.json)")
@@ -24,7 +25,6 @@ def run_evaluate(run_dir: Path, gt: Path | None = None) -> dict:
         raise InputError(f"{info_path}: corrupt run description") from None
     if not (run_dir / "poses.npy").is_file():
         raise InputError(f"{run_dir}: run has no poses.npy (unfinished or interrupted?)")
-    from deepmapping.io.depth import DepthOptions
 
     depth = DepthOptions.from_dict(info["depth"]) if info.get("depth") else None  # the frames the run had
     scans = load_scans(info["data"], fmt=info.get("format"), gt_path=gt or info.get("gt"),
@@ -33,8 +33,6 @@ def run_evaluate(run_dir: Path, gt: Path | None = None) -> dict:
     if scans.gt_poses is None and not relations:
         raise InputError(f"{info['data']}: no ground truth known; pass --gt FILE")
     if scans.is_3d:
-        from deepmapping.io.poses3d import read_poses_3d
-
         poses = read_poses_3d(run_dir / "poses.npy")
     else:
         poses = read_poses_npy(run_dir / "poses.npy")
@@ -42,8 +40,6 @@ def run_evaluate(run_dir: Path, gt: Path | None = None) -> dict:
         raise InputError(f"{run_dir / 'poses.npy'}: {poses.shape[0]} poses for {scans.num_scans} scans")
     cfg = load_config("default", run_dir / "config.yaml") if (run_dir / "config.yaml").exists() else load_config()
     if relations:
-        from deepmapping.api import evaluate_relations
-
         metrics = evaluate_relations(scans, poses)
     else:
         metrics = evaluate_poses(scans, poses, cfg.eval.success_threshold)

@@ -6,14 +6,15 @@ from pathlib import Path
 
 import typer
 
+from deepmapping.experiments import experiment_module
+from deepmapping.experiments.runner import run_experiment
+
 
 def run_experiment_cli(name: str, out: Path, quick: bool, jobs: int | None, threads: int, cluster: str | None,
                        retries: int, only: str | None = None) -> None:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from deepmapping.cli.progress import console
-    from deepmapping.experiments import experiment_module
-    from deepmapping.experiments.runner import run_experiment
 
     experiment_module(name)  # an unknown name fails before anything is written
     columns = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),

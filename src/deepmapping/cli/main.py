@@ -7,8 +7,16 @@ from typing import List, Optional
 
 import typer
 
+from deepmapping.cli.common import fail, parse_sets
+from deepmapping.cli.demo_cmd import run_demo
+from deepmapping.cli.evaluate_cmd import run_evaluate
+from deepmapping.cli.experiment_cmd import run_experiment_cli
 from deepmapping.errors import DeepMappingError
 from deepmapping.methods.registry import METHODS as METHODS_BY_NAME
+from deepmapping.sim import dataset, maps
+from deepmapping.sim.lidar import write_lidar_dataset
+from deepmapping.sim.rgbd import write_rgbd_dataset
+from deepmapping.tools.run_dir import default_run_dir
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="DeepMapping: register many 2D laser scans or 3D point clouds into one map by training an "
@@ -49,7 +57,6 @@ def simulate(
         return
     if kind != "2d":
         raise typer.BadParameter(f"--kind must be 2d, rgbd or lidar, got {kind!r}")
-    from deepmapping.sim import dataset, maps
 
     if paper_dataset:
         folders = dataset.paper_dataset(out, seed=seed)
@@ -65,12 +72,8 @@ def simulate(
 def _simulate_3d(out: Path, kind: str, trajectories: int, frames: int, seed: int, beams: int, noise: float,
                  lidar_step: float = 0.4) -> None:
     if kind == "rgbd":
-        from deepmapping.sim.rgbd import write_rgbd_dataset
-
         write_rgbd_dataset(out, num_trajectories=trajectories, frames=frames, seed=seed, noise_std_m=noise)
     else:
-        from deepmapping.sim.lidar import write_lidar_dataset
-
         if not lidar_step > 0:
             raise typer.BadParameter(f"--lidar-step must be > 0 metres, got {lidar_step}")
         write_lidar_dataset(out, num_trajectories=trajectories, frames=frames, seed=seed, beams=beams,
@@ -125,10 +128,8 @@ def register(
 ):
     """Register scans with DeepMapping or a baseline and write poses, map, pictures, metrics."""
     from deepmapping.cli import register_cmd
-    from deepmapping.cli.common import parse_sets
     from deepmapping.cli.progress import console
     from deepmapping.cli.report import print_metrics
-    from deepmapping.tools.run_dir import default_run_dir
 
     depth = register_cmd.depth_options(every, frames, pixel_stride, image_size, max_depth, intrinsics)
     if resume:
@@ -162,7 +163,6 @@ def evaluate(
     gt: Optional[Path] = typer.Option(None, help="Ground-truth poses (default: the data's own)."),
 ):
     """Evaluate a run against ground truth: ATE, point distance, success; writes metrics.json."""
-    from deepmapping.cli.evaluate_cmd import run_evaluate
     from deepmapping.cli.progress import console
     from deepmapping.cli.report import print_metrics
 
@@ -189,8 +189,6 @@ def experiment(
                                        "(e.g. 'deepmapping-cold-*'); the report still uses every finished run."),
 ):
     """Reproduce one of the paper's experiments: independent runs in parallel, then a markdown report."""
-    from deepmapping.cli.experiment_cmd import run_experiment_cli
-
     run_experiment_cli(name, out, quick, jobs, threads, cluster, retries, only)
 
 
@@ -201,15 +199,11 @@ def demo(
     seed: int = typer.Option(0, help="Trajectory seed."),
 ):
     """Simulate a trajectory, register it with ICP and DeepMapping, evaluate, draw pictures."""
-    from deepmapping.cli.demo_cmd import run_demo
-
     run_demo(out, poses, seed)
 
 
 def main() -> None:
     """Console entry point: user errors become one line on stderr and exit code 2."""
-    from deepmapping.cli.common import fail
-
     try:
         app()
     except DeepMappingError as exc:

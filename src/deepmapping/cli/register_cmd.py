@@ -5,15 +5,20 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from deepmapping.api import register, resolve_device
 from deepmapping.cli.common import fail
 from deepmapping.cli.progress import console, progress_bar
+from deepmapping.config import PROFILES, PROFILES_2D, load_config
+from deepmapping.errors import ConfigError, Interrupted
+from deepmapping.io.atomic import make_folder
+from deepmapping.io.depth import DepthOptions, parse_frames, parse_image_size
+from deepmapping.io.loaders import load_scans
+from deepmapping.io.lock import folder_lock
+from deepmapping.tools.run_dir import write_config, write_json, write_run
 
 
 def build_config(profile, config_file, method, epochs, warm_start, init, device, seed, sets, is_3d=False):
     """The effective config; 3D data gets the 3D variant of the profile (default -> default-3d)."""
-    from deepmapping.config import PROFILES, PROFILES_2D, load_config
-    from deepmapping.errors import ConfigError
-
     if is_3d and profile in PROFILES_2D:
         raise ConfigError(f"profile {profile!r} is for 2D scans; 3D data: --profile default (default-3d)")
     if is_3d and f"{profile}-3d" in PROFILES:
@@ -38,16 +43,12 @@ def build_config(profile, config_file, method, epochs, warm_start, init, device,
 
 def depth_options(every, frames, pixel_stride, image_size, max_depth, intrinsics):
     """The depth-image options of the flags (io.depth.DepthOptions); ConfigError on a bad one."""
-    from deepmapping.io.depth import DepthOptions, parse_frames, parse_image_size
-
     return DepthOptions(every=every, frames=parse_frames(frames) if frames is not None else None,
                         pixel_stride=pixel_stride, image_size=parse_image_size(image_size) if image_size else None,
                         max_depth_m=max_depth, intrinsics=intrinsics)
 
 
 def resume_config(out: Path):
-    from deepmapping.config import load_config
-
     if not (out / "config.yaml").exists() or not (out / "checkpoint.pt").exists():
         fail(f"{out}: nothing to resume (no config.yaml and checkpoint.pt)")
     return load_config("default", out / "config.yaml")
@@ -58,8 +59,6 @@ def run_register(data: Path, out: Path, cfg, fmt, gt, resume: bool, plots: bool 
     """cfg: a Config, or a function is_3d -> Config (the profile depends on the data); depth: the
     depth-image options (io.depth.DepthOptions), kept in run.json for `deepmapping evaluate`."""
     import time
-
-    from deepmapping.io.loaders import load_scans
 
     t_load = time.perf_counter()
     # every input problem is raised before out/ exists (the --init file and the device included),
@@ -72,11 +71,6 @@ def run_register(data: Path, out: Path, cfg, fmt, gt, resume: bool, plots: bool 
         console.print(f"note: {note}", highlight=False, soft_wrap=True)
     cfg = cfg(scans.is_3d) if callable(cfg) else cfg
     load_s = time.perf_counter() - t_load
-    from deepmapping.api import register, resolve_device
-    from deepmapping.errors import Interrupted
-    from deepmapping.io.atomic import make_folder
-    from deepmapping.io.lock import folder_lock
-    from deepmapping.tools.run_dir import write_config, write_json, write_run
 
     if cfg.method in ("deepmapping", "direct"):
         resolve_device(cfg.device)

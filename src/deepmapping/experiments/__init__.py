@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import importlib
 
+from deepmapping.errors import ConfigError
+
 EXPERIMENTS = {  # NAME -> module under deepmapping.experiments
     "2d": "exp_2d",
     "avd": "exp_avd",
@@ -28,8 +30,6 @@ EXPERIMENTS = {  # NAME -> module under deepmapping.experiments
 
 def experiment_module(name: str):
     """The module of experiment ``name`` (a ConfigError naming the choices when unknown)."""
-    from deepmapping.errors import ConfigError
-
     if name not in EXPERIMENTS:
         raise ConfigError(f"unknown experiment '{name}' (choose from {', '.join(EXPERIMENTS)})")
     return importlib.import_module(f"deepmapping.experiments.{EXPERIMENTS[name]}")

@@ -20,7 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
+from deepmapping.config import load_config
 from deepmapping.experiments.base import Job
+from deepmapping.experiments.report import image, markdown_table, runs_by, summary, write_report
+from deepmapping.experiments.warm_start import curve_plot, registration_curve, trajectory_2d
 
 PROFILE = "paper"
 # the same for every variant: the paper's networks and loss at a feasible cost
@@ -62,8 +65,6 @@ def run(trajectory: int, variant: str, poses: int, beams: int, epochs: int, eval
     """DeepMapping with architecture ``variant`` on simulated 2D trajectory ``trajectory``."""
     import torch
 
-    from deepmapping.config import load_config
-    from deepmapping.experiments.warm_start import registration_curve, trajectory_2d
     from deepmapping.solver.model import DeepMappingModel
 
     scans = trajectory_2d(trajectory, poses, beams)
@@ -80,9 +81,6 @@ def run(trajectory: int, variant: str, poses: int, beams: int, epochs: int, eval
 
 
 def report(out: Path, results: dict[str, dict], quick: bool) -> Path:
-    from deepmapping.experiments.report import image, markdown_table, runs_by, summary, write_report
-    from deepmapping.experiments.warm_start import curve_plot
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     s = sizes(quick)

@@ -43,8 +43,16 @@ from pathlib import Path
 
 import numpy as np
 
-from deepmapping.evaluation.metrics import SUCCESS_PX
+from deepmapping.api import register
+from deepmapping.config import load_config
+from deepmapping.evaluation.metrics import SUCCESS_PX, evaluate
+from deepmapping.experiments import report as rep
 from deepmapping.experiments.base import Job
+from deepmapping.io.atomic import atomic_write
+from deepmapping.methods.goicp import incremental_goicp
+from deepmapping.methods.pso import incremental_pso
+from deepmapping.methods.registry import pairwise_settings
+from deepmapping.sim.dataset import PAPER_LENGTHS, paper_trajectory
 
 METHODS = ("deepmapping", "deepmapping-paper", "direct", "icp-point", "icp-plane", "goicp", "pso",
            "deepmapping-cold", "direct-cold")
@@ -75,8 +83,6 @@ PAPER["direct-cold"] = PAPER["direct"]
 
 def jobs(quick: bool) -> list[Job]:
     """One job per (method, trajectory): 7 x 75 at full size, 7 x 3 quick."""
-    from deepmapping.sim.dataset import PAPER_LENGTHS
-
     if quick:
         trajectories = QUICK["trajectories"]
         size = {"num_poses": QUICK["num_poses"], "num_beams": QUICK["num_beams"], "epochs": QUICK["epochs"]}
@@ -106,8 +112,6 @@ def run_trajectory(trajectory: int, method: str, num_poses: int | None = None, n
     method (networks, swarms); ``stride``: keep every stride-th scan only (larger motions
     between consecutive scans). runtime_s counts the registration only, not the simulation.
     """
-    from deepmapping.sim.dataset import paper_trajectory
-
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r} (choose from {', '.join(METHODS)})")
     scans = paper_trajectory(trajectory, num_poses=num_poses, num_beams=num_beams)
@@ -125,9 +129,6 @@ def run_trajectory(trajectory: int, method: str, num_poses: int | None = None, n
 
 
 def _register(scans, method: str, epochs, time_budget_s, seed) -> tuple[dict, dict]:
-    from deepmapping.api import register
-    from deepmapping.config import load_config
-
     profile = "paper" if method == "deepmapping-paper" else "cold" if method in COLD else "default"
     overrides: dict = {"seed": seed, "eval.success_threshold": SUCCESS_PX}
     if method in ("direct", "icp-point", "icp-plane", "direct-cold"):
@@ -148,20 +149,13 @@ def _register(scans, method: str, epochs, time_budget_s, seed) -> tuple[dict, di
 
 
 def _pairwise(scans, method: str, time_budget_s, seed) -> tuple[dict, dict]:
-    from deepmapping.evaluation.metrics import evaluate
-    from deepmapping.methods.registry import pairwise_settings
-
     # distance transforms of 1024^2 cells at full size: building one per pair takes ~0.1 s, a small
     # part of a full-size pair's budget but all of a quick one's (hence 512^2 below 256 beams)
     settings = pairwise_settings(scans, time_budget_s)
     t0 = time.perf_counter()
     if method == "goicp":
-        from deepmapping.methods.goicp import incremental_goicp
-
         poses, info = incremental_goicp(scans.points, scans.valid, mse_threshold=1e-5, **settings)
     else:
-        from deepmapping.methods.pso import incremental_pso
-
         poses, info = incremental_pso(scans.points, scans.valid, seed=seed, **settings)
     runtime = time.perf_counter() - t0
     metrics = evaluate(poses, scans.gt_poses, scans.points, scans.valid, unit_scale=scans.unit_scale,
@@ -240,9 +234,6 @@ def _pct(x: float) -> str:
 def report(out: Path, results: dict[str, dict], quick: bool) -> Path:
     """ate.png, point_distance.png, table.md, summary.json and report.md in ``out``."""
     import json
-
-    from deepmapping.experiments import report as rep
-    from deepmapping.io.atomic import atomic_write
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

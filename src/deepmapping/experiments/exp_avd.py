@@ -21,8 +21,15 @@ from pathlib import Path
 
 import numpy as np
 
+from deepmapping.api import evaluate_poses, register
+from deepmapping.config import load_config
+from deepmapping.data import ScanSet
 from deepmapping.evaluation.metrics3d import AVD_SUCCESS_M
 from deepmapping.experiments.base import Job
+from deepmapping.experiments.report import box_plot, image, markdown_table, runs_by, summary, write_report
+from deepmapping.experiments.warm_start import curve_plot
+from deepmapping.sim.rgbd import Intrinsics, simulate_rgbd_trajectory
+from deepmapping.sim.scene3d import make_scene
 
 PROFILE = "default-3d"
 # name -> (label, overrides of PROFILE; None = no registration)
@@ -67,10 +74,6 @@ def avd_trajectory(trajectory: int, frames: int = 16, seed: int = 0, width: int 
     """Trajectory ``trajectory`` of ``write_rgbd_dataset(seed=seed)`` as an organized ScanSet in
     memory (metres, reported in mm), as ``load_rgbd`` reads it; other image sizes keep the 60 deg
     horizontal field of view (the same trajectory, seen at another resolution)."""
-    from deepmapping.data import ScanSet
-    from deepmapping.sim.rgbd import Intrinsics, simulate_rgbd_trajectory
-    from deepmapping.sim.scene3d import make_scene
-
     intr = Intrinsics() if (width, height) == (80, 60) else Intrinsics.from_hfov(width, height, 60.0)
     scene = make_scene(1000 * seed + trajectory // trajectories_per_scene)
     depth, poses = simulate_rgbd_trajectory(scene, frames, np.random.default_rng([seed, trajectory, 1]), intr)
@@ -87,9 +90,6 @@ def run(trajectory: int, method: str, frames: int, width: int, height: int, epoc
         eval_every: int = 10, seed: int = 0, cold_overrides: dict | None = None) -> dict:
     """Register AVD-like trajectory ``trajectory`` with ``method`` (a key of METHODS);
     ``cold_overrides`` are added to the cold rows' settings (quick runs)."""
-    from deepmapping.api import evaluate_poses, register
-    from deepmapping.config import load_config
-
     scans = avd_trajectory(trajectory, frames, seed, width, height)
     overrides = METHODS[method][1]
     out = {"trajectory": trajectory, "method": method, "frames": frames, "image": [width, height]}
@@ -118,9 +118,6 @@ def _metrics(m: dict) -> dict:
 
 
 def report(out: Path, results: dict[str, dict], quick: bool) -> Path:
-    from deepmapping.experiments.report import box_plot, image, markdown_table, runs_by, summary, write_report
-    from deepmapping.experiments.warm_start import curve_plot
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     s = sizes(quick)
@@ -189,6 +186,4 @@ def _paper(method: str) -> float | None:
 
 
 def _profile_epochs() -> int:
-    from deepmapping.config import load_config
-
     return load_config(PROFILE).optim.epochs

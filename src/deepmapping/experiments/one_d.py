@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from deepmapping.experiments.base import Job
+from deepmapping.experiments.report import image, markdown_table, save_figure, write_report
 
 FUNC = "deepmapping.experiments.one_d:run_1d"
 LR = 2e-4
@@ -127,8 +128,6 @@ def outcome(r: dict) -> str:
 
 
 def report(out: Path, results: dict[str, dict], quick: bool) -> Path:
-    from deepmapping.experiments.report import image, markdown_table, write_report
-
     out = Path(out)
     xg, lg = global_minimum()
     sections = [
@@ -175,8 +174,6 @@ def _figure(path: Path, z0: float, runs: list[dict], xg: float, lg: float) -> Pa
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from deepmapping.experiments.report import save_figure
 
     fig, axes = plt.subplots(3, len(runs), figsize=(4.2 * len(runs), 10.5), squeeze=False)
     for col, r in enumerate(runs):

@@ -47,8 +47,17 @@ from pathlib import Path
 
 import numpy as np
 
+from deepmapping.api import register
+from deepmapping.config import load_config
 from deepmapping.evaluation.metrics import SUCCESS_PX
 from deepmapping.experiments.base import Job
+from deepmapping.experiments.report import image, markdown_table, save_figure, write_report
+from deepmapping.geometry import se2
+from deepmapping.geometry.alignment import align_poses_2d
+from deepmapping.sim.dataset import PX_SCALE, simulate
+from deepmapping.sim.maps import procedural_indoor_map
+from deepmapping.sim.scanner import simulate_scans
+from deepmapping.sim.trajectory import clearance_map
 
 FUNC = "deepmapping.experiments.relocalization:relocalize"
 # cold start + scan-only L-Net on top of the default profile (see the module docstring)
@@ -81,14 +90,6 @@ def relocalize(map_seed: int, map_size: int, traj_seed: int, num_poses: int, num
     walls) with the trained L-Net. Everything is drawn from the seeds; returns a JSON-able dict
     (grids as row lists, null where a cell is not free; errors in px and degrees)."""
     from scipy.spatial import cKDTree
-
-    from deepmapping.api import register
-    from deepmapping.config import load_config
-    from deepmapping.geometry import se2
-    from deepmapping.geometry.alignment import align_poses_2d
-    from deepmapping.sim.dataset import PX_SCALE, simulate
-    from deepmapping.sim.maps import procedural_indoor_map
-    from deepmapping.sim.trajectory import clearance_map
 
     t0 = time.perf_counter()
     occ = procedural_indoor_map(map_seed, map_size)
@@ -153,9 +154,6 @@ def relocalize(map_seed: int, map_size: int, traj_seed: int, num_poses: int, num
 
 def _localize_at(localize, occ: np.ndarray, poses_px: np.ndarray, num_beams: int) -> np.ndarray:
     """Scan from ``poses_px`` and localize the scans (in chunks: bounded memory on big grids)."""
-    from deepmapping.sim.dataset import PX_SCALE
-    from deepmapping.sim.scanner import simulate_scans
-
     pts, valid = simulate_scans(occ, poses_px, num_beams=num_beams)
     return localize(pts / PX_SCALE, valid)
 
@@ -180,8 +178,6 @@ def _array(rows) -> np.ndarray:
 
 
 def report(out: Path, results: dict[str, dict], quick: bool) -> Path:
-    from deepmapping.experiments.report import image, markdown_table, write_report
-
     out = Path(out)
     title = "Re-localization with the trained L-Net"
     sections = [
@@ -263,9 +259,6 @@ def _error_map(path: Path, key: str, r: dict) -> Path:
     import matplotlib.pyplot as plt
     from matplotlib.colors import LogNorm
 
-    from deepmapping.experiments.report import save_figure
-    from deepmapping.sim.maps import procedural_indoor_map
-
     occ = procedural_indoor_map(r["map_seed"], r["map_size"])  # deterministic: redrawn, not stored
     size, g = r["map_size"], r["grid"]
     step = g["step_px"]
@@ -299,8 +292,6 @@ def _error_vs_distance(path: Path, results: dict[str, dict]) -> Path | None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from deepmapping.experiments.report import save_figure
 
     fig, ax = plt.subplots(figsize=(7.5, 4.5))
     drawn = False

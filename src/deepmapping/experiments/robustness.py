@@ -18,7 +18,12 @@ from pathlib import Path
 import numpy as np
 
 from deepmapping.evaluation.metrics import SUCCESS_PX
+from deepmapping.experiments import report as rep
 from deepmapping.experiments.base import Job
+from deepmapping.experiments.exp_2d import BUDGET_S_PER_POSE, run_trajectory
+from deepmapping.experiments.report import save_figure
+from deepmapping.geometry import se2
+from deepmapping.sim.dataset import paper_trajectory
 
 METHODS = ("deepmapping-cold", "direct-cold", "icp-point", "icp-plane", "goicp", "pso")
 TIME_MATCHED = ("goicp", "pso")
@@ -35,8 +40,6 @@ def sizes(quick: bool) -> dict:
 
 def jobs(quick: bool) -> list[Job]:
     """One job per (method, trajectory, stride)."""
-    from deepmapping.experiments.exp_2d import BUDGET_S_PER_POSE
-
     s = sizes(quick)
     out = []
     for t in s["trajectories"]:
@@ -55,10 +58,6 @@ def run(trajectory: int, method: str, stride: int, num_beams: int = 256, epochs:
         time_budget_s: float | None = None, seed: int = 0) -> dict:
     """One thinned trajectory registered by one method: exp_2d's row, the stride, and the
     median step (px) and turn (deg) between consecutive kept scans."""
-    from deepmapping.experiments.exp_2d import run_trajectory
-    from deepmapping.geometry import se2
-    from deepmapping.sim.dataset import paper_trajectory
-
     row = run_trajectory(trajectory, method, num_beams=num_beams, epochs=epochs, time_budget_s=time_budget_s,
                          seed=seed, stride=stride)
     gt = paper_trajectory(trajectory, num_beams=8).gt_poses[::stride]
@@ -96,8 +95,6 @@ def plot(path: Path, success: dict) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from deepmapping.experiments.report import save_figure
-
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for m, pts in success.items():
         pts = [(s, r) for s, r in pts if math.isfinite(r)]
@@ -112,8 +109,6 @@ def plot(path: Path, success: dict) -> None:
 
 
 def report(out: Path, results: dict[str, dict], quick: bool) -> Path:
-    from deepmapping.experiments import report as rep
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     s = sizes(quick)

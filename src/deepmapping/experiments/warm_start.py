@@ -14,7 +14,12 @@ from pathlib import Path
 
 import numpy as np
 
+from deepmapping.api import evaluate_poses, register
+from deepmapping.config import load_config
 from deepmapping.experiments.base import Job
+from deepmapping.experiments.report import image, markdown_table, save_figure, summary, write_report
+from deepmapping.sim.dataset import simulate
+from deepmapping.sim.maps import procedural_indoor_map
 
 STARTS = {"cold": "none", "icp-plane": "icp-plane", "icp-point": "icp-point"}  # label -> warm_start.method
 COLORS = {"cold": "tab:red", "icp-plane": "tab:green", "icp-point": "tab:blue"}
@@ -39,18 +44,12 @@ def jobs(quick: bool) -> list[Job]:
 def trajectory_2d(trajectory: int, poses: int, beams: int = 256):
     """Simulated 2D trajectory ``trajectory`` (a ScanSet with ground truth, px units):
     procedural map ``trajectory % 3``, trajectory seed ``1000 + trajectory``."""
-    from deepmapping.sim.dataset import simulate
-    from deepmapping.sim.maps import procedural_indoor_map
-
     occ = procedural_indoor_map(trajectory % 3)
     return simulate(occ, num_poses=poses, seed=1000 + trajectory, num_beams=beams)
 
 
 def registration_curve(scans, profile: str, overrides: dict) -> dict:
     """Register ``scans``; the ATE curve (history) and the final metrics, JSON-able."""
-    from deepmapping.api import evaluate_poses, register
-    from deepmapping.config import load_config
-
     cfg = load_config(profile, overrides=overrides)
     result = register(scans, cfg)
     h = result.history
@@ -84,8 +83,6 @@ def curve_plot(path: Path, curves: dict[str, list[dict]], title: str, styles: di
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.ticker import FuncFormatter, NullFormatter
-
-    from deepmapping.experiments.report import save_figure
 
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
@@ -129,8 +126,6 @@ def _finite(values) -> np.ndarray:
 
 
 def report(out: Path, results: dict[str, dict], quick: bool) -> Path:
-    from deepmapping.experiments.report import image, markdown_table, summary, write_report
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     s = sizes(quick)

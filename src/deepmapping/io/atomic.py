@@ -8,6 +8,8 @@ import tempfile
 from pathlib import Path
 from typing import IO, Callable
 
+from deepmapping.errors import InputError, OutputError
+
 
 def _file_mode() -> int:
     """The mode a plain open() would give a new file (0o666 less the umask); mkstemp's is 0o600."""
@@ -52,8 +54,6 @@ def atomic_write(path: str | os.PathLike, writer: Callable[[IO[bytes]], None]) -
 
 def cannot_write(path, e: OSError) -> OSError:
     """``OutputError("<path>: cannot write (<reason>)")`` for an OSError raised while writing ``path``."""
-    from deepmapping.errors import OutputError
-
     if isinstance(e, OutputError):
         return e
     return OutputError(f"{path}: cannot write ({e.strerror or e})")
@@ -61,8 +61,6 @@ def cannot_write(path, e: OSError) -> OSError:
 
 def make_folder(path) -> Path:
     """``mkdir -p path``; OutputError naming it when it cannot be created (read-only, a file there)."""
-    from deepmapping.errors import OutputError
-
     path = Path(path)
     try:
         path.mkdir(parents=True, exist_ok=True)
@@ -75,8 +73,6 @@ def make_folder(path) -> Path:
 
 def read_user_file(path) -> bytes:
     """The bytes of a user's input file; InputError naming the file when it cannot be read."""
-    from deepmapping.errors import InputError
-
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: file not found")
@@ -90,8 +86,6 @@ def read_user_file(path) -> bytes:
 
 def read_user_text(path) -> str:
     """A user's text file as str (UTF-8); InputError naming the file when it cannot be read."""
-    from deepmapping.errors import InputError
-
     try:
         return read_user_file(path).decode("utf-8")
     except UnicodeDecodeError:

@@ -38,7 +38,10 @@ import numpy as np
 from deepmapping.data import ScanSet
 from deepmapping.errors import InputError
 from deepmapping.geometry import se3
+from deepmapping.io.atomic import read_user_text
 from deepmapping.io.clouds import check_max_points, pad_clouds, subsample
+from deepmapping.io.ply import read_ply
+from deepmapping.io.poses3d import read_poses_3d
 
 __all__ = ["SENSOR_Y", "SENSOR_Z", "is_bunny_folder", "read_bun_conf", "load_bunny",
            "scan_centroids", "bunny_pose_errors"]
@@ -54,8 +57,6 @@ def is_bunny_folder(path: str | os.PathLike) -> bool:
 
 def read_bun_conf(path: str | os.PathLike) -> list[tuple[str, np.ndarray]]:
     """[(file name, (4, 4) pose R(q)^T p + t)] of the ``bmesh`` lines, in file order."""
-    from deepmapping.io.atomic import read_user_text
-
     path = Path(path)
     text = read_user_text(path)
     out = []
@@ -88,7 +89,6 @@ def _override(path, k: int, names: list[str], origins: np.ndarray) -> np.ndarray
         if missing:
             raise InputError(f"{path}: no bmesh line for {', '.join(missing)}")
         return np.stack([table[n] for n in names]) @ _translations(origins)
-    from deepmapping.io.poses3d import read_poses_3d
 
     poses = read_poses_3d(path)
     if len(poses) != k:
@@ -108,8 +108,6 @@ def load_bunny(folder: str | os.PathLike, gt_path=None, init_path=None, max_poin
     invalid points). gt = bun.conf's poses, shifted; ``gt_path``/``init_path``: a .conf
     (shifted likewise) or a pose file read by ``read_poses_3d`` in the loaded (shifted) frames.
     """
-    from deepmapping.io.ply import read_ply
-
     folder = Path(folder)
     entries = read_bun_conf(folder / "bun.conf")
     check_max_points(folder, max_points)

@@ -26,7 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-from deepmapping.errors import InputError
+from deepmapping.data import FullSequence, ScanSet
+from deepmapping.errors import ConfigError, InputError
+from deepmapping.sequence import select_keyframes
 
 __all__ = ["CarmenLog", "read_carmen", "match_scans", "open_text", "is_carmen_file", "CARMEN_SUFFIXES", "FLASER_MAX_RANGE"]
 
@@ -222,10 +224,6 @@ def load_carmen(path: str | os.PathLike, gt_path=None, init_path=None, keyframes
     the relations file next to the log (``<name>.relations``) for scoring. ``non_keyframes``:
     how the other scans get their pose, "odometry" from the nearest keyframe, or "icp" (then
     matched to that keyframe's scan)."""
-    from deepmapping.data import FullSequence, ScanSet
-    from deepmapping.errors import ConfigError
-    from deepmapping.sequence import select_keyframes
-
     path = Path(path)
     if gt_path is not None or init_path is not None:
         raise ConfigError(f"{path}: a CARMEN log carries its own poses (odometry); --gt/--init are not read for it")

@@ -22,6 +22,8 @@ import numpy as np
 
 from deepmapping.data import ScanSet
 from deepmapping.errors import ConfigError, InputError
+from deepmapping.io.atomic import read_user_text
+from deepmapping.io.loaders import natural_key
 
 __all__ = ["DepthOptions", "Camera", "INTRINSICS_PRESETS", "DEFAULT_WIDTH", "parse_frames", "parse_image_size",
            "select_frames", "pixel_grid", "read_k_matrix", "read_json", "read_intrinsics_json", "read_depth_png",
@@ -196,8 +198,6 @@ def read_depth_png(path: Path) -> np.ndarray:
 
 def read_k_matrix(path: Path, depth_scale: float) -> Camera:
     """A 3x3 K text file (``camera-intrinsics.txt``: 9 numbers, rows fx 0 cx / 0 fy cy / 0 0 1)."""
-    from deepmapping.io.atomic import read_user_text
-
     text = read_user_text(path)
     try:
         k = np.array([float(t) for t in text.replace(",", " ").split()], dtype=np.float64)
@@ -288,8 +288,6 @@ def depth_scanset(folder: Path, files: list[Path], cam: Camera, opts: DepthOptio
 
 
 def natural_sorted(paths) -> list[Path]:
-    from deepmapping.io.loaders import natural_key
-
     return sorted(paths, key=lambda p: natural_key(p.name))
 
 

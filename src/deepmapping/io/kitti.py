@@ -17,8 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
+from deepmapping.data import ScanSet
 from deepmapping.errors import InputError
+from deepmapping.io.atomic import read_user_file
 from deepmapping.io.clouds import check_max_points, pad_clouds, subsample
+from deepmapping.io.pcd import atomic_write
+from deepmapping.io.poses3d import check_rotations, read_poses_3d
 
 __all__ = ["is_kitti_folder", "read_velodyne_bin", "write_velodyne_bin", "read_calib_tr", "load_kitti", "DEFAULT_MAX_POINTS"]
 
@@ -46,8 +50,6 @@ def read_velodyne_bin(path: str | os.PathLike) -> np.ndarray:
 
 def read_calib_tr(path: str | os.PathLike) -> np.ndarray | None:
     """The 4x4 LiDAR-to-camera-0 transform of a KITTI ``calib.txt`` (None if it has no Tr line)."""
-    from deepmapping.io.atomic import read_user_file
-
     path = Path(path)
     for lineno, line in enumerate(read_user_file(path).decode("utf-8", errors="replace").splitlines(), start=1):
         key, _, rest = line.partition(":")
@@ -60,7 +62,6 @@ def read_calib_tr(path: str | os.PathLike) -> np.ndarray | None:
                 raise InputError(f"{path}:{lineno}: Tr needs 12 numbers")
             if not np.isfinite(vals).all():
                 raise InputError(f"{path}:{lineno}: Tr contains NaN or inf")
-            from deepmapping.io.poses3d import check_rotations
 
             tr = np.vstack([vals.reshape(3, 4), [0.0, 0.0, 0.0, 1.0]])
             return check_rotations(path, tr[None], [lineno])[0]  # a rigid transform (it is inverted)
@@ -80,9 +81,6 @@ def load_kitti(folder: str | os.PathLike, gt_path=None, init_path=None, max_poin
                seed: int = 0):
     """A KITTI sequence as an unorganized 6-DoF ScanSet (metres), each scan subsampled to
     ``max_points`` (None = all)."""
-    from deepmapping.data import ScanSet
-    from deepmapping.io.poses3d import read_poses_3d
-
     folder = Path(folder)
     files = sorted((folder / "velodyne").glob("*.bin"))
     if len(files) < 2:
@@ -107,8 +105,6 @@ def load_kitti(folder: str | os.PathLike, gt_path=None, init_path=None, max_poin
 
 def write_velodyne_bin(path: str | os.PathLike, xyz, reflectance=None) -> None:
     """Write (N, 3) points as a KITTI ``.bin`` (float32 x y z r; r = 0 by default), atomically."""
-    from deepmapping.io.pcd import atomic_write
-
     xyz = np.asarray(xyz, dtype=np.float32)
     r = np.zeros(len(xyz), np.float32) if reflectance is None else np.asarray(reflectance, np.float32)
     data = np.column_stack([xyz, r]).astype("<f4").tobytes()

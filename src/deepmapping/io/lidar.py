@@ -20,6 +20,8 @@ import numpy as np
 from deepmapping.data import ScanSet
 from deepmapping.errors import InputError
 from deepmapping.io.clouds import check_max_points, pad_clouds, subsample
+from deepmapping.io.pcd import read_pcd
+from deepmapping.io.ply import read_ply
 from deepmapping.io.rgbd import load_pose_files, read_json, sorted_files
 
 __all__ = ["is_lidar_folder", "load_lidar"]
@@ -35,12 +37,8 @@ def is_lidar_folder(path: str | os.PathLike) -> bool:
 
 def _read_cloud(path: Path) -> np.ndarray:
     if path.suffix.lower() == ".pcd":
-        from deepmapping.io.pcd import read_pcd
-
         xyz = read_pcd(path)
     else:
-        from deepmapping.io.ply import read_ply
-
         xyz = read_ply(path)
     if xyz.shape[0] == 0:
         raise InputError(f"{path}: scan has no point")

@@ -28,9 +28,11 @@ import numpy as np
 
 from deepmapping.data import ScanSet
 from deepmapping.errors import ConfigError, InputError
+from deepmapping.io.clouds import pad_clouds
 from deepmapping.io.pcd import read_pcd
 from deepmapping.io.ply import read_ply
 from deepmapping.io.poses import read_gt_mat, read_poses
+from deepmapping.io.poses3d import read_poses_3d
 
 __all__ = [
     "LOADERS",
@@ -236,9 +238,6 @@ def load_folder(folder: Path, gt_path: Path | None = None, init_path: Path | Non
 def _load_clouds_folder(folder: Path, files: list[Path], gt_path, init_path) -> ScanSet:
     """A folder of 3D clouds (any z != 0): unorganized 6-DoF scans, metres; poses KITTI/TUM/.npy
     (``gt_path``, else ``poses.txt`` / ``gt_poses.txt`` in the folder)."""
-    from deepmapping.io.clouds import pad_clouds
-    from deepmapping.io.poses3d import read_poses_3d
-
     clouds = []
     for f in files:
         xyz, _ = read_scan_file(f)

@@ -13,6 +13,9 @@ import os
 from contextlib import contextmanager
 from pathlib import Path
 
+from deepmapping.errors import FolderBusy
+from deepmapping.io.atomic import cannot_write
+
 try:
     import fcntl
 except ImportError:  # Windows: no flock; runs are not locked there
@@ -44,9 +47,6 @@ def folder_lock(folder):
 
 def _acquire(folder: Path):
     """The open lock file, locked; FolderBusy naming the holder's pid when another process has it."""
-    from deepmapping.errors import FolderBusy
-    from deepmapping.io.atomic import cannot_write
-
     if fcntl is None:
         return None
     path = folder / LOCK_NAME

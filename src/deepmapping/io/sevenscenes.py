@@ -22,7 +22,10 @@ import numpy as np
 
 from deepmapping.data import ScanSet
 from deepmapping.errors import InputError
+from deepmapping.io.atomic import read_user_text
 from deepmapping.io.depth import DepthOptions, as_path, camera_from, depth_scanset, natural_sorted, select_frames
+from deepmapping.io.poses3d import check_rotations
+from deepmapping.io.rgbd import load_pose_files
 
 __all__ = ["is_7scenes_folder", "load_7scenes", "read_pose_matrix", "frame_files"]
 
@@ -43,9 +46,6 @@ def is_7scenes_folder(path: str | os.PathLike) -> bool:
 
 def read_pose_matrix(path: Path) -> np.ndarray:
     """One ``frame-*.pose.txt``: a 4x4 rigid matrix (16 numbers); InputError naming the file otherwise."""
-    from deepmapping.io.atomic import read_user_text
-    from deepmapping.io.poses3d import check_rotations
-
     try:
         vals = np.array([float(t) for t in read_user_text(path).split()], dtype=np.float64)
     except ValueError:
@@ -75,8 +75,6 @@ def _frame_poses(files: list[Path], idx: np.ndarray) -> np.ndarray | None:
 def load_7scenes(folder: str | os.PathLike, gt_path=None, init_path=None, depth: DepthOptions | None = None) -> ScanSet:
     """The depth images of a 7-Scenes folder as a 6-DoF ScanSet; ground truth from the pose files
     (or ``gt_path``: one file with a pose per depth image, KITTI / TUM / .npy)."""
-    from deepmapping.io.rgbd import load_pose_files
-
     folder = as_path(folder)
     opts = depth or DepthOptions()
     files = frame_files(folder)

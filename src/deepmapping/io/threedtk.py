@@ -37,6 +37,7 @@ from deepmapping.errors import InputError
 from deepmapping.geometry import se3
 from deepmapping.io.atomic import atomic_write, read_user_text
 from deepmapping.io.clouds import check_max_points, pad_clouds, subsample
+from deepmapping.io.poses3d import check_rotations, read_poses_3d
 
 __all__ = ["is_3dtk_folder", "read_3d", "read_pose", "write_pose", "read_frames", "write_frames", "load_3dtk"]
 
@@ -144,7 +145,6 @@ def read_frames(path: str | os.PathLike, return_codes: bool = False):
         lines.append(lineno)
     if not mats:
         raise InputError(f"{path}: no frame")
-    from deepmapping.io.poses3d import check_rotations
 
     poses = _to_ours(check_rotations(path, np.stack(mats), lines))
     return (poses, np.array(codes)) if return_codes else poses
@@ -179,8 +179,6 @@ def write_pose(path: str | os.PathLike, pose) -> None:
 def _poses(folder: Path, files: list[Path], path, suffix: str, what: str) -> np.ndarray:
     """Poses from ``path`` (read_poses_3d, loaded frame) or each scan's .pose / last .frames."""
     if path is not None:
-        from deepmapping.io.poses3d import read_poses_3d
-
         poses = read_poses_3d(path)
         if len(poses) != len(files):
             raise InputError(f"{path}: {len(poses)} {what} for {len(files)} scans (counts differ)")

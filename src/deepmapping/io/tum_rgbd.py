@@ -25,7 +25,10 @@ import numpy as np
 
 from deepmapping.data import ScanSet
 from deepmapping.errors import InputError
+from deepmapping.io.atomic import read_user_text
 from deepmapping.io.depth import INTRINSICS_PRESETS, DepthOptions, as_path, camera_from, depth_scanset, select_frames
+from deepmapping.io.poses3d import read_tum_trajectory
+from deepmapping.io.rgbd import load_pose_files
 
 __all__ = ["is_tum_rgbd_folder", "load_tum_rgbd", "read_depth_list", "match_timestamps", "MAX_DT_S"]
 
@@ -40,8 +43,6 @@ def is_tum_rgbd_folder(path: str | os.PathLike) -> bool:
 
 def read_depth_list(path: Path) -> tuple[np.ndarray, list[Path]]:
     """``depth.txt`` -> (timestamps (S,) strictly increasing, image paths); InputError naming it."""
-    from deepmapping.io.atomic import read_user_text
-
     stamps, files = [], []
     for lineno, line in enumerate(read_user_text(path).splitlines(), start=1):
         tok = line.split("#", 1)[0].split()
@@ -74,8 +75,6 @@ def match_timestamps(query: np.ndarray, ref: np.ndarray, max_dt: float = MAX_DT_
 
 def _ground_truth(path: Path, stamps: np.ndarray) -> tuple[np.ndarray, np.ndarray, str | None]:
     """(kept frame positions, their poses, a note or None): frames matched to a pose within MAX_DT_S."""
-    from deepmapping.io.poses3d import read_tum_trajectory
-
     gt_stamps, poses = read_tum_trajectory(path)
     match = match_timestamps(stamps, gt_stamps)
     keep = np.flatnonzero(match >= 0)
@@ -93,8 +92,6 @@ def load_tum_rgbd(folder: str | os.PathLike, gt_path=None, init_path=None,
     """The depth frames of a TUM RGB-D sequence as a 6-DoF ScanSet, ground truth matched by time
     (``gt_path``: another TUM trajectory). ``init_path``: one pose per frame kept after matching
     (KITTI / TUM / .npy), before ``--frames`` / ``--every``."""
-    from deepmapping.io.rgbd import load_pose_files
-
     folder = as_path(folder)
     opts = depth or DepthOptions()
     stamps, files = read_depth_list(folder / "depth.txt")

@@ -35,6 +35,7 @@ import numpy as np
 
 from deepmapping.geometry import se2
 from deepmapping.geometry.distance_field import DistanceField2D, clean_points_2d
+from deepmapping.methods.icp import icp_2d
 
 __all__ = ["goicp_2d", "incremental_goicp"]
 
@@ -157,8 +158,6 @@ def goicp_2d(
     pruned. Only the lower bounds prove optimality, so the cheaper upper-bound search keeps
     the guarantee; solving it exactly spent whole budgets on one wrong rotation.
     """
-    from deepmapping.methods.icp import icp_2d
-
     t0 = time.perf_counter()
     src = clean_points_2d(source, "source")
     tgt = clean_points_2d(target, "target")

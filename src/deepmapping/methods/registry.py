@@ -17,6 +17,14 @@ import numpy as np
 from deepmapping.config import Config
 from deepmapping.data import ScanSet
 from deepmapping.errors import ConfigError
+from deepmapping.methods.goicp import incremental_goicp
+from deepmapping.methods.icp import incremental_icp
+from deepmapping.methods.icp3d import incremental_icp_3d
+from deepmapping.methods.icp_planar import incremental_icp_planar
+from deepmapping.methods.kiss_odometry import kiss_icp_poses
+from deepmapping.methods.loop_closure import close_loops
+from deepmapping.methods.multiway import multiway_registration
+from deepmapping.methods.pso import incremental_pso
 
 __all__ = ["Method", "METHODS", "CLASSICAL", "WARM_STARTS", "get_method", "run_classical",
            "pairwise_settings"]
@@ -71,13 +79,11 @@ def _scales(cfg: Config) -> dict:
 
 def _incremental_icp(scans: ScanSet, cfg: Config, init, progress, kind: str) -> np.ndarray:
     if not scans.is_3d:  # ours: Open3D's ICP is 3D
-        from deepmapping.methods.icp import incremental_icp
 
         return incremental_icp(scans.points.astype(np.float64), scans.valid, method=kind, initial_poses=init,
                                max_iterations=cfg.icp.max_iterations,
                                max_correspondence_distance=cfg.icp.max_correspondence_distance,
                                recover_margin=cfg.icp.recover_margin, progress=progress)
-    from deepmapping.methods.icp3d import incremental_icp_3d
 
     return incremental_icp_3d(_clouds(scans), method=kind, init=init, max_iterations=cfg.icp.max_iterations,
                               progress=progress, **_scales(cfg))
@@ -97,8 +103,6 @@ def _icp_plane(scans, cfg, init=None, progress=None):
          hint_other_dims=" (3D: multiway)")
 def _loop_closure(scans, cfg, init=None, progress=None):
     """Each pair started from ``init`` (e.g. odometry) or from the identity (methods.loop_closure)."""
-    from deepmapping.methods.loop_closure import close_loops
-
     c = cfg.icp
     guess = np.zeros((scans.num_scans, 3)) if init is None else init
     poses, _ = close_loops(scans.points, scans.valid, guess, min_gap=c.loop_min_gap, radius=c.loop_radius,
@@ -114,7 +118,6 @@ def _loop_closure(scans, cfg, init=None, progress=None):
 def _icp_planar(scans, cfg, init=None, progress=None):
     if scans.pose_dof != 3:
         raise ConfigError("icp-planar estimates planar [x, z, theta] poses: it needs 3-DoF scans (pose_dof 3)")
-    from deepmapping.methods.icp_planar import incremental_icp_planar
 
     return incremental_icp_planar(_clouds(scans), init=init, yaw_hypotheses_deg=cfg.icp.yaw_hypotheses_deg,
                                   progress=progress, **_scales(cfg))
@@ -122,16 +125,12 @@ def _icp_planar(scans, cfg, init=None, progress=None):
 
 @_method("multiway", (3,), "Open3D's multiway registration (pairwise ICP and a pose graph)", "3D")
 def _multiway(scans, cfg, init=None, progress=None):
-    from deepmapping.methods.multiway import multiway_registration
-
     return multiway_registration(_clouds(scans), init=init, edges=cfg.icp.multiway_edges, progress=progress,
                                  **_scales(cfg))
 
 
 @_method("kiss-icp", (3,), "KISS-ICP's LiDAR odometry", "3D sequences, KISS-ICP odometry")
 def _kiss_icp(scans, cfg, init=None, progress=None):
-    from deepmapping.methods.kiss_odometry import kiss_icp_poses
-
     return kiss_icp_poses(_clouds(scans), init=init, voxel_size=cfg.icp.voxel_size, threads=cfg.threads or 1,
                           progress=progress)
 
@@ -152,8 +151,6 @@ def pairwise_settings(scans: ScanSet, time_budget_s: float | None) -> dict:
 def _goicp(scans, cfg, init=None, progress=None):
     """Unset ``optim.max_time_s``: GOICP_S_PER_SCAN per scan (to optimality can take hours). Each pair
     starts with ICP from the constant-velocity guess, so a short budget still returns ICP's pose."""
-    from deepmapping.methods.goicp import incremental_goicp
-
     settings = pairwise_settings(scans, cfg.optim.max_time_s)
     if settings["time_budget_s"] is None:
         settings["time_budget_s"] = GOICP_S_PER_SCAN * scans.num_scans
@@ -165,8 +162,6 @@ def _goicp(scans, cfg, init=None, progress=None):
          "2D, pairwise", warm_start=False)
 def _pso(scans, cfg, init=None, progress=None):
     """Unset ``optim.max_time_s``: one round (swarm) per pair."""
-    from deepmapping.methods.pso import incremental_pso
-
     poses, _ = incremental_pso(scans.points, scans.valid, seed=cfg.seed, progress=progress,
                                **pairwise_settings(scans, cfg.optim.max_time_s))
     return poses

@@ -14,6 +14,7 @@ import numpy as np
 
 from deepmapping.data import ScanSet
 from deepmapping.io.atomic import atomic_write
+from deepmapping.io.pcd import write_pcd
 from deepmapping.sim.maps import procedural_indoor_map, save_map_png
 from deepmapping.sim.scanner import simulate_scans
 from deepmapping.sim.trajectory import sample_trajectory
@@ -112,8 +113,6 @@ def write_authors_layout(
     ``map.png`` (the map with the trajectory drawn). Every file is written atomically.
     """
     import scipy.io
-
-    from deepmapping.io.pcd import write_pcd
 
     out = Path(out_dir)
     if isinstance(scans, ScanSet):

@@ -27,7 +27,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from deepmapping.geometry import se3
+from deepmapping.io.atomic import write_json
+from deepmapping.io.ply import write_ply
+from deepmapping.io.poses3d import write_kitti_poses
 from deepmapping.sim.raycast import caster_for
+from deepmapping.sim.scene3d import make_scene
 
 __all__ = ["LidarConfig", "BASE", "lidar_pose", "smooth_trajectory", "scan", "simulate_lidar_trajectory",
            "write_lidar_dataset"]
@@ -150,11 +154,6 @@ def write_lidar_dataset(out_dir: str | os.PathLike, num_trajectories: int = 10, 
                         beams: int = 16, azimuth_res_deg: float = 1.0, max_range_m: float = 20.0,
                         noise_std_m: float = 0.0, step_m: float = 0.4, trajectories_per_scene: int = 2) -> list[Path]:
     """Write ``traj_000/ ...`` folders (scans/NNNNNN.ply, gt_poses.txt, meta.json); scene seeds as in sim.rgbd."""
-    from deepmapping.io.atomic import write_json
-    from deepmapping.io.ply import write_ply
-    from deepmapping.io.poses3d import write_kitti_poses
-    from deepmapping.sim.scene3d import make_scene
-
     cfg = LidarConfig(beams, None, azimuth_res_deg, max_range_m, 0.1, noise_std_m)
     scenes: dict = {}
     folders = []

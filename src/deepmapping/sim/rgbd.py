@@ -28,7 +28,9 @@ import numpy as np
 
 from deepmapping.geometry import se3
 from deepmapping.io.atomic import atomic_write, write_json
+from deepmapping.io.poses3d import write_kitti_poses
 from deepmapping.sim.raycast import caster_for
+from deepmapping.sim.scene3d import make_scene
 
 __all__ = ["Intrinsics", "render_depth", "grid_trajectory", "simulate_rgbd_trajectory",
            "write_rgbd_dataset"]
@@ -129,9 +131,6 @@ def write_rgbd_dataset(out_dir: str | os.PathLike, num_trajectories: int = 10, f
                        intrinsics: Intrinsics | None = None, max_depth_m: float = 7.0, noise_std_m: float = 0.0,
                        p_move: float = 0.5, trajectories_per_scene: int = 2) -> list[Path]:
     """Write ``traj_000/ ...`` folders (depth/NNNNNN.png, intrinsics.json, gt_poses.txt, meta.json)."""
-    from deepmapping.io.poses3d import write_kitti_poses
-    from deepmapping.sim.scene3d import make_scene
-
     intr = intrinsics or Intrinsics()
     scenes: dict[int, object] = {}
     folders = []

@@ -15,14 +15,13 @@ import math
 import numpy as np
 
 from deepmapping.config import MNetConfig
+from deepmapping.methods.icp3d import point_spacing as spacing
 
 EXPORT_MIN_CELLS, EXPORT_MAX_CELLS = 64, 128  # occupancy export: cells along the map's longest side
 
 
 def point_spacing(points: np.ndarray, valid: np.ndarray) -> float:
     """Median nearest-neighbour distance within a scan (a few evenly spread scans), data units."""
-    from deepmapping.methods.icp3d import point_spacing as spacing
-
     return spacing([p[v] for p, v in zip(points, valid)])
 
 

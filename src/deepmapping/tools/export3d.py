@@ -15,7 +15,10 @@ from typing import IO, Callable
 
 import numpy as np
 
+from deepmapping.geometry import se3
 from deepmapping.io.atomic import atomic_write
+from deepmapping.io.pcd import write_pcd
+from deepmapping.io.ply import write_ply
 
 __all__ = ["occupancy_grid", "write_occupancy_grid", "read_occupancy_grid", "occupancy_mesh",
            "write_mesh_ply", "scan_colors", "registered_cloud", "write_registered_cloud"]
@@ -115,8 +118,6 @@ def scan_colors(k: int) -> np.ndarray:
 
 def registered_cloud(points, valid, poses):
     """Valid points (K, N, 3) moved by their poses (K, 4, 4): (pts (M, 3) float64, scan_index (M,))."""
-    from deepmapping.geometry import se3
-
     pts, val = np.asarray(points, np.float64), np.asarray(valid, bool)
     poses = np.asarray(poses, np.float64)
     if pts.ndim != 3 or pts.shape[2] != 3 or val.shape != pts.shape[:2] or poses.shape != (len(pts), 4, 4):
@@ -132,10 +133,7 @@ def write_registered_cloud(path: str | os.PathLike, points, valid, poses) -> Non
     (x y z) when ``path`` ends in .pcd."""
     pts, index = registered_cloud(points, valid, poses)
     if str(path).lower().endswith(".pcd"):
-        from deepmapping.io.pcd import write_pcd
-
         write_pcd(path, pts)
         return
-    from deepmapping.io.ply import write_ply
 
     write_ply(path, pts, scan_colors(len(np.asarray(points)))[index])

@@ -17,6 +17,8 @@ import os
 
 import numpy as np
 
+from deepmapping.io.atomic import atomic_write, make_folder
+
 __all__ = [
     "register_points",
     "explored_mask",
@@ -83,8 +85,6 @@ def save_figure(fig, path) -> None:
     import io
 
     from matplotlib.backends.backend_agg import FigureCanvasAgg
-
-    from deepmapping.io.atomic import atomic_write, make_folder
 
     FigureCanvasAgg(fig)
     make_folder(os.path.dirname(os.path.abspath(os.fspath(path))))

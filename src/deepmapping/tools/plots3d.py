@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from deepmapping.evaluation.metrics3d import align_poses_3d
+from deepmapping.tools.export3d import registered_cloud, scan_colors
 from deepmapping.tools.plots import legend_below, new_figure, save_figure, unit_label
 
 __all__ = ["view_basis", "plot_cloud_3d", "plot_trajectories_3d"]
@@ -59,9 +61,6 @@ def plot_cloud_3d(path, points, valid, poses, gt_poses=None, title="", unit_scal
 
     ``show_trajectory=False`` leaves out the sensor positions (e.g. the bunny's, ~1.3 m from
     a 0.15 m object) so that the views frame the cloud alone."""
-    from deepmapping.evaluation.metrics3d import align_poses_3d
-    from deepmapping.tools.export3d import registered_cloud, scan_colors
-
     poses = np.asarray(poses, np.float64)
     pts, index = _sample(*registered_cloud(points, valid, poses), max_points)
     V, labels = view_basis(up_axis)
@@ -100,8 +99,6 @@ def plot_trajectories_3d(path, trajs: dict, gt=None, title="", unit_scale=1.0, u
     """Top view of several trajectories (K, 4, 4) and optionally the ground truth (dashed
     black); with ``align`` each trajectory is first rigidly aligned onto the ground truth."""
     import matplotlib
-
-    from deepmapping.evaluation.metrics3d import align_poses_3d
 
     V, labels = view_basis(up_axis)
     colors = matplotlib.colormaps["tab10"].colors

@@ -16,8 +16,15 @@ import numpy as np
 from deepmapping.api import Result
 from deepmapping.data import ScanSet
 from deepmapping.geometry import se2
+from deepmapping.geometry.alignment import align_poses_2d
 from deepmapping.io.atomic import make_folder, write_json, write_text
+from deepmapping.io.pcd import write_pcd
+from deepmapping.io.ply import write_ply
+from deepmapping.io.poses import write_pose_text, write_poses_npy
+from deepmapping.io.poses3d import write_kitti_poses, write_tum_poses
 from deepmapping.methods.keyframes import place_all_scans
+from deepmapping.tools import plots
+from deepmapping.tools.run_dir3d import write_run_3d
 from deepmapping.tools.run_files import write_config, write_history_csv
 
 
@@ -29,12 +36,7 @@ def default_run_dir(method: str, root: str | Path = "runs") -> Path:
 def write_run(out: Path, scans: ScanSet, result: Result, data_info: dict, plots: bool = True) -> list[Path]:
     """Write every output of a finished run; returns the files written."""
     if scans.is_3d:
-        from deepmapping.tools.run_dir3d import write_run_3d
-
         return write_run_3d(out, scans, result, data_info, plots)
-    from deepmapping.io.pcd import write_pcd
-    from deepmapping.io.ply import write_ply
-    from deepmapping.io.poses import write_pose_text, write_poses_npy
 
     make_folder(out)
     write_poses_npy(out / "poses.npy", result.poses)
@@ -62,14 +64,11 @@ def _write_trajectories(out: Path, scans: ScanSet, poses: np.ndarray) -> None:
     """KITTI and TUM files (full precision) of the registered scans; for a keyframed log also of
     every input scan (``all_scans_*``, non-keyframes placed by odometry from their nearest
     keyframe), with the log's own timestamps, and the keyframe indices."""
-    from deepmapping.io.poses3d import write_kitti_poses, write_tum_poses
-
     write_kitti_poses(out / "poses_kitti.txt", se2.to_se3(poses))
     seq = scans.sequence
     write_tum_poses(out / "poses_tum.txt", se2.to_se3(poses), None if seq is None else list(scans.names))
     if seq is None:
         return
-    from deepmapping.io.poses import write_pose_text, write_poses_npy
 
     every = place_all_scans(seq, poses)
     write_poses_npy(out / "all_scans_poses.npy", every)
@@ -90,9 +89,6 @@ def _global_cloud(scans: ScanSet, poses: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 def _write_pictures(out: Path, scans: ScanSet, result: Result) -> None:
-    from deepmapping.geometry.alignment import align_poses_2d
-    from deepmapping.tools import plots
-
     unit, scale = scans.unit, scans.unit_scale
     flip = unit == "px"  # image frame: y grows downwards, as in the simulator's pictures
     # show the estimate in the ground-truth frame when known (the estimate's frame is arbitrary)

@@ -9,13 +9,23 @@ import numpy as np
 
 from deepmapping.api import Result
 from deepmapping.data import ScanSet
+from deepmapping.geometry import se3
 from deepmapping.io.atomic import make_folder, write_json
+from deepmapping.io.poses3d import write_kitti_poses, write_poses_npy_3d, write_tum_poses
+from deepmapping.io.threedtk import is_3dtk_folder, write_frames, write_pose
+from deepmapping.solver.resolution import export_voxel
+from deepmapping.tools import plots, plots3d
+from deepmapping.tools.export3d import (
+    occupancy_grid,
+    occupancy_mesh,
+    write_mesh_ply,
+    write_occupancy_grid,
+    write_registered_cloud,
+)
 from deepmapping.tools.run_files import write_config, write_history_csv
 
 
 def write_poses_3d(out: Path, poses: np.ndarray) -> None:
-    from deepmapping.io.poses3d import write_kitti_poses, write_poses_npy_3d, write_tum_poses
-
     write_poses_npy_3d(out / "poses.npy", poses)
     write_kitti_poses(out / "poses_kitti.txt", poses)
     write_tum_poses(out / "poses_tum.txt", poses)
@@ -25,10 +35,6 @@ def write_occupancy(out: Path, scans: ScanSet, result: Result, voxel: float | No
     """The M-Net's map as a voxel grid of occupancy probabilities and its 0.5 level set as a mesh;
     returns the grid's voxel and shape. Default voxel: half the M-Net's finest period (64-128
     cells along the longest side, solver.resolution.export_voxel)."""
-    from deepmapping.geometry import se3
-    from deepmapping.solver.resolution import export_voxel
-    from deepmapping.tools.export3d import occupancy_grid, occupancy_mesh, write_mesh_ply, write_occupancy_grid
-
     glob = se3.transform_points(result.poses, scans.points)[scans.valid]
     lo, hi = glob.min(0), glob.max(0)
     voxel = voxel or export_voxel(float((hi - lo).max()), (result.map_resolution or {}).get("finest_period"))
@@ -40,8 +46,6 @@ def write_occupancy(out: Path, scans: ScanSet, result: Result, voxel: float | No
 
 
 def write_run_3d(out: Path, scans: ScanSet, result: Result, data_info: dict, plots: bool = True) -> list[Path]:
-    from deepmapping.tools.export3d import write_registered_cloud
-
     make_folder(out)
     write_poses_3d(out, result.poses)
     write_config(out, result.config)
@@ -66,8 +70,6 @@ def write_run_3d(out: Path, scans: ScanSet, result: Result, data_info: dict, plo
 
 def _write_3dtk_frames(out: Path, scans: ScanSet, poses: np.ndarray) -> None:
     """3DTK input: also slam6D-style ``frames/scanNNN.frames`` (one line, the final pose)."""
-    from deepmapping.io.threedtk import is_3dtk_folder, write_frames, write_pose
-
     if not is_3dtk_folder(Path(scans.source)):
         return
     make_folder(out / "frames")
@@ -77,8 +79,6 @@ def _write_3dtk_frames(out: Path, scans: ScanSet, poses: np.ndarray) -> None:
 
 
 def _write_pictures(out: Path, scans: ScanSet, result: Result) -> None:
-    from deepmapping.tools import plots, plots3d
-
     title = result.method
     if result.metrics:
         title += f" — ATE {result.metrics['ate']:.1f} {scans.unit}"
