@@ -33,8 +33,6 @@ METHODS = {  # name -> config overrides on the default-3d profile
     "deepmapping": {},
     "direct": {"method": "direct"},
 }
-BUNNY_SETTINGS = {"lnet.pivot": "centroid", "lnet.pointnet_lr_factor": 0.02,
-                  "loss.near_hit_samples": 8, "loss.near_hit_distance": 0.2}
 
 
 def coarse_start(scans, deg: float = 10.0, mm: float = 10.0, seed: int = 0) -> np.ndarray:
@@ -52,12 +50,12 @@ def coarse_start(scans, deg: float = 10.0, mm: float = 10.0, seed: int = 0) -> n
     return scans.gt_poses @ c @ pert @ se3.inverse(c)
 
 
-def register_from(scans, init: np.ndarray, overrides: dict) -> tuple[np.ndarray, float]:
+def register_from(scans, init: np.ndarray, overrides: dict, profile: str = "default-3d") -> tuple[np.ndarray, float]:
     from deepmapping.api import register
     from deepmapping.config import load_config
 
     scans.init_poses = init
-    cfg = load_config("default-3d", overrides={"warm_start.method": "file", **overrides})
+    cfg = load_config(profile, overrides={"warm_start.method": "file", **overrides})
     result = register(scans, cfg)
     return result.poses, result.runtime_s
 
@@ -84,8 +82,10 @@ def bunny(args, sets) -> dict:
         for method, ov in METHODS.items():
             if start == "identity" and method != "multiway":
                 continue  # 45-180 deg apart: only a global method has a chance (none of ours does)
-            extra = (BUNNY_SETTINGS | sets) if method in ("deepmapping", "direct") else {}
-            poses, runtime = register_from(scans, init, ov | extra | {"threads": args.threads})
+            # deepmapping and direct: the bunny profile (default-3d, poses about the scan's centroid, ...)
+            trained = method in ("deepmapping", "direct")
+            poses, runtime = register_from(scans, init, ov | (sets if trained else {}) | {"threads": args.threads},
+                                           profile="bunny" if trained else "default-3d")
             report[f"{method} from {start}"] = {"runtime_s": runtime,
                                                 "scans": bunny_pose_errors(poses, scans.gt_poses, scans.names, centroids)}
             print(f"bunny {method} from {start}: {_summary(report[f'{method} from {start}']['scans'])}", flush=True)

@@ -16,7 +16,7 @@ def test_bunny_check_small():
     from deepmapping.api import register
     from deepmapping.config import load_config
     from deepmapping.io.bunny import bunny_pose_errors, load_bunny, scan_centroids
-    from real_3d import BUNNY_SETTINGS, coarse_start
+    from real_3d import coarse_start
 
     scans = load_bunny(DATA / "bunny", max_points=300)
     centroids = scan_centroids(scans.points, scans.valid)
@@ -26,9 +26,9 @@ def test_bunny_check_small():
     errors = {}
     for method in ("direct", "deepmapping"):
         # 90 steps in all: no M-Net warm-up (default-3d holds the poses for 20 epochs and 100 steps)
-        cfg = load_config("default-3d", overrides={"method": method, "warm_start.method": "file", "threads": 1,
-                                                   "optim.epochs": 30, "optim.mnet_warmup_epochs": 0,
-                                                   "optim.mnet_warmup_steps": 0, **BUNNY_SETTINGS})
+        cfg = load_config("bunny", overrides={"method": method, "warm_start.method": "file", "threads": 1,
+                                              "optim.epochs": 30, "optim.mnet_warmup_epochs": 0,
+                                              "optim.mnet_warmup_steps": 0})
         poses = register(scans, cfg).poses
         errors[method] = bunny_pose_errors(poses, scans.gt_poses, scans.names, centroids)
         assert len(errors[method]) == 10 and all(np.isfinite([e["rot_deg"], e["trans_mm"]]).all()

@@ -12,7 +12,7 @@ from typing import Callable
 
 import numpy as np
 
-from deepmapping.config import Config, load_config
+from deepmapping.config import Config, load_config, resolve_profile
 from deepmapping.data import ScanSet
 from deepmapping.errors import ConfigError, InputError
 from deepmapping.evaluation.evo_metrics import evo_metrics
@@ -61,7 +61,7 @@ def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | 
     curriculum first (``config.curriculum``; ``on_place(placed, total)`` reports its progress).
     """
     scans.validate()
-    cfg = config or load_config("default-3d" if scans.is_3d else "default")
+    cfg = config or load_config(resolve_profile("default", scans.is_3d))
     t0 = time.perf_counter()
     if cfg.method in BASELINES:  # initial guesses only from a pose file (warm_start.method = "file")
         init = warm_start_poses(scans, cfg) if cfg.warm_start.method == "file" else None

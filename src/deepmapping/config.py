@@ -1,8 +1,9 @@
 """One typed configuration with nested sections, and named profiles.
 
-``paper`` reproduces §4.1 of the paper exactly (networks, 19 free-space samples per beam,
-batch 128, 3000 epochs). ``default`` is the fast path (see docs/method.md for what changed
-and why it is still DeepMapping).
+The profiles are files, ``profiles/<name>.yaml``: ``paper`` reproduces §4.1 of the paper exactly
+(networks, 19 free-space samples per beam, batch 128, 3000 epochs); ``default`` is the fast path
+(see docs/method.md for what changed and why it is still DeepMapping); each file says what it is
+for. ``resolve_profile`` picks the one a run uses.
 """
 
 from __future__ import annotations
@@ -293,71 +294,71 @@ def validate_config(data: dict) -> Config:
         raise ConfigError(f"invalid setting {loc!r}: {err['msg']}") from None
 
 
-PROFILES: dict[str, dict] = {
-    # §4.1 exactly: full-size networks, 19 uniform free-space samples on every beam,
-    # batch 128, 3000 epochs, Adam lr 1e-3 constant, lambda = 10.
-    "paper": {"curriculum": {"enabled": "off"}},
-    # Fast path, measured in benchmarks/ (docs/method.md explains each change).
-    "default": {
-        "lnet": {"conv_channels": [32, 64, 128], "fc_channels": [256, 128], "zero_init_output": True,
-                 "feature_norm": True, "lr_factor": 0.1, "pose_input_freqs": 8},
-        "mnet": {"kind": "fourier", "hidden": [128, 128, 128], "fourier_features": 16},
-        "loss": {"free_samples": 4, "free_sampling": "stratified", "beams_per_scan": 64},
-        "optim": {"batch_size": 64, "epochs": 250, "lr_final_factor": 0.05, "eval_every": 10},
-    },
-    # Cold start (no initial poses, no classical registration): the default profile after the
-    # curriculum (section "curriculum", docs/method.md). `--warm-start none` picks it.
-    "cold": {"warm_start": {"method": "none"}, "curriculum": {"enabled": "on"}},
-    # 2D scans of 128 beams or more, about 3x faster training than default: half the beams and
-    # free-space samples a step, L-Net convolutions at stride 2 (docs/method.md, "Speed")
-    "fast": {"lnet": {"stride": 2}, "loss": {"free_samples": 2, "beams_per_scan": 32}},
-    # §4.2 (AVD) exactly: C(64)-C(128)-C(256)-C(1024)-AM(1)-FC(512)-FC(256)-FC(3) on depth images
-    # (PointNet FC(64)-...-FC(1024) on clouds), the §4.1 M-Net with a 3-D input, 35 free-space
-    # samples per ray, lambda = 0.1, batch 8, 3000 epochs, Adam lr 1e-3; no warm start.
-    "paper-3d": {
-        "lnet": {"conv_channels": [64, 128, 256, 1024]},
-        "loss": {"free_samples": 35, "chamfer_weight": 0.1},
-        "optim": {"batch_size": 8},
-        "warm_start": {"method": "none"},
-        "curriculum": {"enabled": "off"},
-    },
-    # Fast 3D path (benchmarks/avd_3d.py measures it).
-    "default-3d": {
-        "lnet": {"conv_channels": [32, 64, 128], "stride": 2, "fc_channels": [256, 128], "zero_init_output": True,
-                 "feature_norm": True, "feature_std_floor": 0.1, "lr_factor": 0.3, "pose_input_freqs": 8,
-                 "point_channels": [64, 128, 256], "pointnet_lr_factor": 0.1},
-        "mnet": {"kind": "fourier", "hidden": [128, 128, 128], "fourier_features": 16, "coarse_to_fine": 0.5,
-                 "fourier_period_spacings": 8.0},
-        "loss": {"free_samples": 8, "free_sampling": "stratified", "beams_per_scan": 256, "chamfer_weight": 0.1},
-        "optim": {"batch_size": 4, "epochs": 200, "lr_final_factor": 0.05, "eval_every": 10, "mnet_warmup_epochs": 20,
-                  "mnet_warmup_steps": 100},
-        "warm_start": {"method": "auto"},
-        # cold start of planar (AVD-like) depth images: rank the hypotheses by the truncated
-        # Chamfer distance (views overlap in part) + what each view says is free space in the
-        # other; the rounds search headings only, a wide search (Chamfer-only screen, every
-        # image) finds moves: the untruncated Chamfer term prefers no motion and no turn, and
-        # without the free-space check a turn that overlaps better stands in for a move
-        # (docs/method.md, "Cold start on depth images")
-        "curriculum": {"select_truncate": 0.05, "max_shift": 0.03, "free_space_weight": 3.0,
-                       "wide_hypotheses": 3500, "wide_shift": 0.5, "wide_turn_deg": 45.0, "wide_points": 128,
-                       "wide_keep": 16, "wide_refine": 16, "wide_trigger": 0.0, "wide_bce_weight": 0.0,
-                       "free_space_trigger": 0.0, "free_space_ramp": 1.0,
-                       "small_wide_hypotheses": 0},
-    },
-}
+PROFILE_DIR = Path(__file__).parent / "profiles"
+PROFILE_KEYS = ("base", "scans")  # a profile file's own keys: the profile it changes, the kind of scans it is for
 
 
-PROFILE_BASE = {"cold": "default", "fast": "default"}  # profiles written as changes to another one
-PROFILES_2D = ("fast",)  # tuned for 2D scans only
+def _read_profiles() -> dict[str, dict]:
+    """Every named profile, ``profiles/<name>.yaml``: a complete config, or ``base: NAME`` and what
+    changes from that profile; ``scans: 2d|3d`` when it is for one kind of scans only."""
+    import yaml
+
+    first = ("default", "default-3d", "paper", "paper-3d", "cold", "fast")  # then the others, by name
+    files = sorted(PROFILE_DIR.glob("*.yaml"), key=lambda f: (first.index(f.stem) if f.stem in first else len(first), f.stem))
+    out = {f.stem: yaml.safe_load(f.read_text(encoding="utf-8")) for f in files}
+    if "default" not in out:
+        raise ConfigError(f"{PROFILE_DIR}: the profile files are missing (broken install?)")
+    return out
+
+
+PROFILES: dict[str, dict] = _read_profiles()
+
+
+def resolve_profile(profile: str, is_3d: bool, cold: bool = False) -> str:
+    """The profile a run uses: 3D scans get the 3D variant (default -> default-3d, paper ->
+    paper-3d), a cold start of the default profile gets ``cold``."""
+    if profile not in PROFILES:
+        raise ConfigError(f"unknown profile '{profile}' (choose from {', '.join(PROFILES)})")
+    if is_3d and PROFILES[profile].get("scans") == "2d":
+        raise ConfigError(f"profile {profile!r} is for 2D scans; 3D data: --profile default (default-3d)")
+    if is_3d and f"{profile}-3d" in PROFILES:
+        profile = f"{profile}-3d"
+    if profile == "default" and cold:
+        profile = "cold"
+    return profile
+
+
+def profile_settings(profile: str) -> dict:
+    """The complete settings of a named profile (its base's, then its own changes)."""
+    if profile not in PROFILES:
+        raise ConfigError(f"unknown profile '{profile}' (choose from {', '.join(PROFILES)})")
+    own = {k: v for k, v in PROFILES[profile].items() if k not in PROFILE_KEYS}
+    base = PROFILES[profile].get("base")
+    if base is None:
+        missing = sorted(_dotted_keys(Config().model_dump()) - {"profile"} - _dotted_keys(own))
+        if missing:
+            raise ConfigError(f"{PROFILE_DIR / profile}.yaml: a profile without 'base' lists every setting; "
+                              f"missing {', '.join(missing)}")
+        return own
+    return _deep_merge(profile_settings(base), own)
+
+
+def profile_changes(profile: str) -> dict:
+    """What a profile written as ``base`` + changes changes, as dotted keys ({"loss.chamfer_weight": 50.0})."""
+    own = {k: v for k, v in PROFILES[profile].items() if k not in PROFILE_KEYS}
+
+    def flat(data: dict, prefix: str = "") -> dict:
+        out = {}
+        for k, v in data.items():
+            out |= flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v}
+        return out
+
+    return flat(own)
 
 
 def load_config(profile: str = "default", path: str | Path | None = None, overrides: dict | None = None) -> Config:
     """Profile defaults, then a YAML/JSON file, then dotted overrides."""
-    if profile not in PROFILES:
-        raise ConfigError(f"unknown profile '{profile}' (choose from {', '.join(PROFILES)})")
-    base = PROFILES[PROFILE_BASE[profile]] if profile in PROFILE_BASE else {}
-    data = _deep_merge(_deep_merge(Config().model_dump(), base), PROFILES[profile])
-    data["profile"] = profile
+    data = profile_settings(profile) | {"profile": profile}
     if path is None:
         cfg = validate_config(data)
     else:
@@ -389,6 +390,13 @@ def _read_config_file(path: Path) -> dict:
     if not isinstance(loaded, dict):
         raise ConfigError(f"{path}: config must be a mapping of sections")
     return loaded
+
+
+def _dotted_keys(data: dict, prefix: str = "") -> set[str]:
+    out = set()
+    for k, v in data.items():
+        out |= _dotted_keys(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}"}
+    return out
 
 
 def _deep_merge(base: dict, extra: dict) -> dict:

@@ -11,6 +11,7 @@ from deepmapping.cli.common import fail, parse_sets
 from deepmapping.cli.demo_cmd import run_demo
 from deepmapping.cli.evaluate_cmd import run_evaluate
 from deepmapping.cli.experiment_cmd import run_experiment_cli
+from deepmapping.config import PROFILES
 from deepmapping.errors import DeepMappingError
 from deepmapping.methods.registry import METHODS as METHODS_BY_NAME
 from deepmapping.sim import dataset, maps
@@ -23,6 +24,10 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
                        "L-Net and an M-Net.")
 
 METHODS = " | ".join(m.label for m in METHODS_BY_NAME.values())  # the registry (methods.registry)
+PROFILE_HELP = (" | ".join(p for p in PROFILES if not p.endswith("-3d"))  # the files in src/deepmapping/profiles/
+                + ": default = fast path, paper = §4.1/§4.2 exactly, cold = --warm-start none, fast = 2D scans of "
+                "128+ beams (about 3x less training time), bunny = single objects scanned around; 3D data gets the "
+                "-3d variant. Each is a file in deepmapping/profiles/.")
 
 
 @app.command(epilog="Examples:\n\n  deepmapping simulate data/traj0 --poses 256 --seed 3\n\n"
@@ -93,8 +98,7 @@ def register(
                                 "or a CARMEN log (.clf/.log, .gz/.bz2)."),
     method: str = typer.Option("deepmapping", help=METHODS),
     out: Optional[Path] = typer.Option(None, help="Run folder (default: runs/<timestamp>_<method>)."),
-    profile: str = typer.Option("default", help="default | fast (2D scans of 128+ beams: about 3x less "
-                                "training time) | paper (§4.1 / §4.2 exactly); 3D data gets the -3d variant."),
+    profile: str = typer.Option("default", help=PROFILE_HELP),
     config: Optional[Path] = typer.Option(None, help="YAML/JSON config file (sections as in config.yaml)."),
     set: Optional[List[str]] = typer.Option(None, "--set", help="Override a setting: --set optim.epochs=200."),
     epochs: Optional[int] = typer.Option(None, help="Number of epochs."),

@@ -8,8 +8,8 @@ from pathlib import Path
 from deepmapping.api import register, resolve_device
 from deepmapping.cli.common import fail
 from deepmapping.cli.progress import console, progress_bar
-from deepmapping.config import PROFILES, PROFILES_2D, load_config
-from deepmapping.errors import ConfigError, Interrupted
+from deepmapping.config import load_config, resolve_profile
+from deepmapping.errors import Interrupted
 from deepmapping.io.atomic import make_folder
 from deepmapping.io.depth import DepthOptions, parse_frames, parse_image_size
 from deepmapping.io.loaders import load_scans
@@ -19,12 +19,7 @@ from deepmapping.tools.run_dir import write_config, write_json, write_run
 
 def build_config(profile, config_file, method, epochs, warm_start, init, device, seed, sets, is_3d=False):
     """The effective config; 3D data gets the 3D variant of the profile (default -> default-3d)."""
-    if is_3d and profile in PROFILES_2D:
-        raise ConfigError(f"profile {profile!r} is for 2D scans; 3D data: --profile default (default-3d)")
-    if is_3d and f"{profile}-3d" in PROFILES:
-        profile = f"{profile}-3d"
-    if profile == "default" and warm_start == "none" and init is None:
-        profile = "cold"  # the cold start's profile: the default one after the curriculum
+    profile = resolve_profile(profile, is_3d, cold=warm_start == "none" and init is None)
 
     overrides = dict(sets)
     overrides["method"] = method

@@ -48,7 +48,7 @@ from pathlib import Path
 import numpy as np
 
 from deepmapping.api import register
-from deepmapping.config import load_config
+from deepmapping.config import load_config, profile_changes
 from deepmapping.evaluation.metrics import SUCCESS_PX
 from deepmapping.experiments.base import Job
 from deepmapping.experiments.report import image, markdown_table, save_figure, write_report
@@ -60,9 +60,10 @@ from deepmapping.sim.scanner import simulate_scans
 from deepmapping.sim.trajectory import clearance_map
 
 FUNC = "deepmapping.experiments.relocalization:relocalize"
-# cold start + scan-only L-Net on top of the default profile (see the module docstring)
-OVERRIDES = {"warm_start.method": "none", "curriculum.enabled": "off", "lnet.pose_input_freqs": 0, "lnet.lr_factor": 1.0,
-             "mnet.coarse_to_fine": 0.5, "loss.chamfer_weight": 50.0, "loss.chamfer_window": 2}
+# cold start + scan-only L-Net: the default profile with these changes (profiles/relocalization.yaml,
+# see the module docstring)
+PROFILE = "relocalization"
+OVERRIDES = profile_changes(PROFILE)
 HEADINGS = ("nearest", "random")
 BINS = ((0.0, 16.0), (16.0, 64.0), (64.0, float("inf")))  # distance to the trajectory (px)
 SIMILAR_DEG = 30.0  # "similar orientation": within this of the nearest training pose's heading
@@ -94,7 +95,7 @@ def relocalize(map_seed: int, map_size: int, traj_seed: int, num_poses: int, num
     t0 = time.perf_counter()
     occ = procedural_indoor_map(map_seed, map_size)
     scans = simulate(occ, num_poses, seed=traj_seed, num_beams=num_beams)
-    cfg = load_config("default", overrides=OVERRIDES | {"optim.epochs": epochs, "seed": seed} | (overrides or {}))
+    cfg = load_config(PROFILE, overrides={"optim.epochs": epochs, "seed": seed} | (overrides or {}))
     result = register(scans, cfg)
     t_reg = time.perf_counter() - t0
     gt_px = scans.gt_poses * [PX_SCALE, PX_SCALE, 1.0]
@@ -183,7 +184,7 @@ def report(out: Path, results: dict[str, dict], quick: bool) -> Path:
     sections = [
         "§4.1 \"Generalization of L-Net\" / Fig. 7: after registering a trajectory, a scan is simulated at "
         "every free cell of a grid and the trained L-Net estimates its pose. Registration from a cold start "
-        "with a scan-only L-Net (T = f(S), as the paper; the default profile with "
+        "with a scan-only L-Net (T = f(S), as the paper; profile `relocalization`: the default one with "
         + ", ".join(f"`{k}={v}`" for k, v in OVERRIDES.items())
         + "); new scans are localized with no prior. Errors are against the true pose, after aligning the "
         "registered trajectory rigidly to the ground truth. Grid headings: `nearest` = the heading of the "
