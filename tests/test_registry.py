@@ -76,3 +76,5 @@ def test_the_pairwise_baselines_register_through_the_api(name):
     result = register(scans, load_config("default", overrides={"method": name}))
     assert result.method == name and result.poses.shape == (4, 3)
     assert result.metrics["ate"] < 5.0
+    # what the method reports about its run (the 2D experiment's columns)
+    assert {"goicp": "pairs_optimal", "pso": "mean_rounds"}[name] in result.method_info

@@ -46,6 +46,8 @@ class Result:
     map_resolution: dict | None = None
     # where the time went (s): "warm_start_s", "curriculum_s" (cold start), "training_s"
     timings: dict = field(default_factory=dict)
+    # what a classical method reports about its run (Go-ICP: pairs solved to optimality, ...)
+    method_info: dict = field(default_factory=dict)
 
 
 def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | Path | None = None,
@@ -65,8 +67,11 @@ def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | 
     t0 = time.perf_counter()
     if cfg.method in BASELINES:  # initial guesses only from a pose file (warm_start.method = "file")
         init = warm_start_poses(scans, cfg) if cfg.warm_start.method == "file" else None
-        poses = baseline_poses(scans, cfg, cfg.method, init, on_icp_progress)
-        return _finish(scans, cfg, poses, t0, init=init)
+        info: dict = {}
+        poses = baseline_poses(scans, cfg, cfg.method, init, on_icp_progress, info=info)
+        result = _finish(scans, cfg, poses, t0, init=init)
+        result.method_info = info
+        return result
     saved = _load_checkpoint(checkpoint, cfg) if resume else None
     if saved is not None:
         init = np.asarray(saved["init_poses_input"])
@@ -82,10 +87,11 @@ def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | 
 BASELINES = CLASSICAL  # the classical methods (methods.registry): baselines and warm starts
 
 
-def baseline_poses(scans: ScanSet, cfg: Config, method: str, init=None, progress=None) -> np.ndarray:
+def baseline_poses(scans: ScanSet, cfg: Config, method: str, init=None, progress=None,
+                   info: dict | None = None) -> np.ndarray:
     """Classic registration by name (methods.registry): incremental ICP (2D: ours; 3D: Open3D),
     loop closure (2D logs), planar ICP, multiway registration or KISS-ICP odometry (3D)."""
-    return run_classical(scans, cfg, method, init, progress)
+    return run_classical(scans, cfg, method, init, progress, info)
 
 
 def warm_start_poses(scans: ScanSet, cfg: Config, progress=None) -> np.ndarray:

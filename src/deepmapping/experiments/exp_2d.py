@@ -38,20 +38,16 @@ suite runs and writes everything, not that it meets the paper.
 from __future__ import annotations
 
 import math
-import time
 from pathlib import Path
 
 import numpy as np
 
 from deepmapping.api import register
 from deepmapping.config import load_config
-from deepmapping.evaluation.metrics import SUCCESS_PX, evaluate
+from deepmapping.evaluation.metrics import SUCCESS_PX
 from deepmapping.experiments import report as rep
 from deepmapping.experiments.base import Job
 from deepmapping.io.atomic import atomic_write
-from deepmapping.methods.goicp import incremental_goicp
-from deepmapping.methods.pso import incremental_pso
-from deepmapping.methods.registry import pairwise_settings
 from deepmapping.sim.dataset import PAPER_LENGTHS, paper_trajectory
 
 METHODS = ("deepmapping", "deepmapping-paper", "direct", "icp-point", "icp-plane", "goicp", "pso",
@@ -149,18 +145,13 @@ def _register(scans, method: str, epochs, time_budget_s, seed) -> tuple[dict, di
 
 
 def _pairwise(scans, method: str, time_budget_s, seed) -> tuple[dict, dict]:
-    # distance transforms of 1024^2 cells at full size: building one per pair takes ~0.1 s, a small
-    # part of a full-size pair's budget but all of a quick one's (hence 512^2 below 256 beams)
-    settings = pairwise_settings(scans, time_budget_s)
-    t0 = time.perf_counter()
-    if method == "goicp":
-        poses, info = incremental_goicp(scans.points, scans.valid, mse_threshold=1e-5, **settings)
-    else:
-        poses, info = incremental_pso(scans.points, scans.valid, seed=seed, **settings)
-    runtime = time.perf_counter() - t0
-    metrics = evaluate(poses, scans.gt_poses, scans.points, scans.valid, unit_scale=scans.unit_scale,
-                       success_threshold=SUCCESS_PX)
-    return metrics | {"runtime_s": runtime}, {k: v for k, v in info.items() if k != "time_s"}
+    """Go-ICP or PSO through register() like every method (methods.registry: each scan onto its
+    predecessor, trimmed, the whole sequence within ``time_budget_s``)."""
+    overrides = {"method": method, "seed": seed, "eval.success_threshold": SUCCESS_PX}
+    if time_budget_s is not None:
+        overrides["optim.max_time_s"] = float(time_budget_s)
+    result = register(scans, load_config("default", overrides=overrides))
+    return result.metrics, {k: v for k, v in result.method_info.items() if k != "time_s"}
 
 
 # ---------------------------------------------------------------------------------- report

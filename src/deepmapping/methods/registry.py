@@ -154,17 +154,17 @@ def _goicp(scans, cfg, init=None, progress=None):
     settings = pairwise_settings(scans, cfg.optim.max_time_s)
     if settings["time_budget_s"] is None:
         settings["time_budget_s"] = GOICP_S_PER_SCAN * scans.num_scans
-    poses, _ = incremental_goicp(scans.points, scans.valid, mse_threshold=1e-5, progress=progress, **settings)
-    return poses
+    poses, info = incremental_goicp(scans.points, scans.valid, mse_threshold=1e-5, progress=progress, **settings)
+    return poses, info
 
 
 @_method("pso", (2,), "particle swarm registration of each scan onto its predecessor, motions chained",
          "2D, pairwise", warm_start=False)
 def _pso(scans, cfg, init=None, progress=None):
     """Unset ``optim.max_time_s``: one round (swarm) per pair."""
-    poses, _ = incremental_pso(scans.points, scans.valid, seed=cfg.seed, progress=progress,
-                               **pairwise_settings(scans, cfg.optim.max_time_s))
-    return poses
+    poses, info = incremental_pso(scans.points, scans.valid, seed=cfg.seed, progress=progress,
+                                  **pairwise_settings(scans, cfg.optim.max_time_s))
+    return poses, info
 
 
 CLASSICAL = tuple(name for name, m in METHODS.items() if m.run is not None)
@@ -177,10 +177,17 @@ def get_method(name: str) -> Method:
     return METHODS[name]
 
 
-def run_classical(scans: ScanSet, cfg: Config, name: str, init=None, progress=None) -> np.ndarray:
-    """The poses of a classical method (``CLASSICAL``); ConfigError for data it does not handle."""
+def run_classical(scans: ScanSet, cfg: Config, name: str, init=None, progress=None,
+                  info: dict | None = None) -> np.ndarray:
+    """The poses of a classical method (``CLASSICAL``); ConfigError for data it does not handle.
+    ``info``, when given, receives what the method reports about its run (Go-ICP: pairs solved to
+    optimality, seconds per pair); a method's ``run`` returns poses or (poses, that dict)."""
     m = get_method(name)
     if m.run is None:
         raise ConfigError(f"{name} is not a classical registration method (one of: {', '.join(CLASSICAL)})")
     m.check(scans)
-    return m.run(scans, cfg, init, progress)
+    out = m.run(scans, cfg, init, progress)
+    poses, reported = out if isinstance(out, tuple) else (out, {})
+    if info is not None:
+        info.update(reported)
+    return poses
