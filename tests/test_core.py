@@ -197,13 +197,32 @@ def test_point_distance_and_evaluate():
     ref = np.mean(np.linalg.norm(se2.transform_points(est[2], pts[2]) - se2.transform_points(gt[2], pts[2]), axis=1)[valid[2]])
     assert pd == pytest.approx(ref * valid[2].sum() / valid.sum(), rel=1e-9)
     res = evaluate(est, gt, pts, valid, unit_scale=512.0, success_threshold=20.0)
-    assert set(res) == {"ate", "point_distance", "success", "rotation_rmse_deg", "num_scans"}
-    assert res["ate"] < 1e-8 and res["success"] is True and res["num_scans"] == 6
+    assert set(res) == {"ate", "point_distance", "success", "success_threshold", "rotation_rmse_deg",
+                        "rotation_max_deg", "num_scans"}
+    assert res["ate"] < 1e-8 and res["success"] is True and res["num_scans"] == 6 and res["success_threshold"] == 20.0
     assert res["point_distance"] == pytest.approx(512.0 * pd)
     assert res["rotation_rmse_deg"] == pytest.approx(np.degrees(0.1) / np.sqrt(6), rel=1e-6)
+    # one heading off by 0.1 rad; the alignment spreads it over the six: the largest error under 0.1 rad
+    assert res["rotation_rmse_deg"] < res["rotation_max_deg"] < np.degrees(0.1) + 1e-9
     far = gt.copy()
     far[0, :2] += 1.0
     assert evaluate(far, gt, pts, valid, unit_scale=512.0)["success"] is False
+
+
+def test_one_evaluate_for_2d_and_3d_with_the_same_keys():
+    from deepmapping.evaluation import evaluate as evaluate_any
+    from deepmapping.geometry import se3
+
+    rng = np.random.default_rng(3)
+    gt2 = random_poses(rng, 5)
+    pts2, valid2 = rng.normal(size=(5, 30, 2)), np.ones((5, 30), bool)
+    gt3 = np.stack([se3.from_rt(np.eye(3), t) for t in rng.normal(size=(5, 3))])
+    pts3, valid3 = rng.normal(size=(5, 30, 3)), np.ones((5, 30), bool)
+    two = evaluate_any(gt2, gt2, pts2, valid2)
+    three = evaluate_any(gt3, gt3, pts3, valid3)
+    assert set(two) == set(three)
+    assert two["success_threshold"] == 20.0 and two["ate"] < 1e-9 and three["ate"] < 1e-9
+    assert evaluate_any(gt3, gt3, pts3, valid3, avd_protocol=True)["success_threshold"] == 0.45  # AVD's 450 mm, in m
 
 
 # ---------------------------------------------------------------- ICP

@@ -15,6 +15,7 @@ import numpy as np
 from deepmapping.config import Config, load_config, resolve_profile
 from deepmapping.data import ScanSet
 from deepmapping.errors import ConfigError, InputError
+from deepmapping.evaluation import evaluate
 from deepmapping.evaluation.evo_metrics import evo_metrics
 from deepmapping.evaluation.relations import read_relations, score_relations
 from deepmapping.io.poses import read_poses
@@ -289,12 +290,7 @@ def evaluate_poses(scans: ScanSet, poses: np.ndarray, success_threshold: float |
 
     success_threshold None: 20 px (2D), 450 mm for AVD-like depth images (planar poses, the paper's
     protocol), 2 % of the typical range for other 3D data (evaluation.metrics3d.success_threshold_3d)."""
-    if scans.is_3d:
-        from deepmapping.evaluation.metrics3d import evaluate_3d as evaluate
-    else:
-        from deepmapping.evaluation.metrics import evaluate
-
-    extra = {"avd_protocol": scans.grid_shape is not None and scans.pose_dof == 3} if scans.is_3d else {}
     metrics = evaluate(poses, scans.gt_poses, scans.points, scans.valid, unit_scale=scans.unit_scale,
-                       success_threshold=success_threshold, **extra)
+                       success_threshold=success_threshold,
+                       avd_protocol=scans.is_3d and scans.grid_shape is not None and scans.pose_dof == 3)
     return metrics | {"unit": scans.unit, "evo": evo_metrics(poses, scans.gt_poses, scans.unit_scale)}

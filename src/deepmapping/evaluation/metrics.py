@@ -25,12 +25,16 @@ def ate(est, gt) -> float:
     return float(np.sqrt(np.mean(np.sum((aligned[:, :2] - gt[:, :2]) ** 2, axis=1))))
 
 
-def rotation_rmse_deg(est, gt) -> float:
-    """RMSE of heading errors (degrees) after the same alignment as ATE."""
+def heading_errors_deg(est, gt) -> np.ndarray:
+    """(K,) absolute heading errors (degrees) after the same alignment as ATE."""
     est, gt = _check(est, gt)
     aligned = align_poses_2d(est, gt)
-    err = se2.wrap_angle(aligned[:, 2] - gt[:, 2])
-    return float(np.degrees(np.sqrt(np.mean(err**2))))
+    return np.abs(np.degrees(se2.wrap_angle(aligned[:, 2] - gt[:, 2])))
+
+
+def rotation_rmse_deg(est, gt) -> float:
+    """RMSE of heading errors (degrees) after the same alignment as ATE."""
+    return float(np.sqrt(np.mean(heading_errors_deg(est, gt) ** 2)))
 
 
 def point_distance(points, valid, est, gt) -> float:
@@ -62,15 +66,19 @@ def evaluate(est, gt, points, valid, unit_scale: float = 1.0, success_threshold:
     """All metrics; lengths multiplied by ``unit_scale`` (ground-truth units such as px).
 
     Returns {"ate", "point_distance", "success" (ate < success_threshold, both in scaled
-    units), "rotation_rmse_deg", "num_scans"}.
+    units), "success_threshold", "rotation_rmse_deg", "rotation_max_deg", "num_scans"}: the keys
+    of ``metrics3d.evaluate_3d``.
     """
     est, gt = _check(est, gt)
     a = ate(est, gt) * unit_scale
     success_threshold = SUCCESS_PX if success_threshold is None else success_threshold
+    heading = heading_errors_deg(est, gt)
     return {
         "ate": a,
         "point_distance": point_distance(points, valid, est, gt) * unit_scale,
         "success": bool(a < success_threshold),
-        "rotation_rmse_deg": rotation_rmse_deg(est, gt),
+        "success_threshold": float(success_threshold),
+        "rotation_rmse_deg": float(np.sqrt(np.mean(heading**2))),
+        "rotation_max_deg": float(heading.max()),
         "num_scans": int(est.shape[0]),
     }
