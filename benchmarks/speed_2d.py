@@ -52,7 +52,7 @@ def run_method(data: str, out: str, profile: str, overrides: dict, threads: int)
     from deepmapping.api import register
     from deepmapping.config import load_config
     from deepmapping.io.loaders import load_scans
-    from deepmapping.tools.run_dir import write_run
+    from deepmapping.output.run_dir import write_run
 
     torch.set_num_threads(threads)
     cfg = load_config(profile, overrides=overrides | {"threads": threads})
@@ -243,7 +243,7 @@ def main() -> None:
     meta = {"date": str(date.today()), "machine": f"{platform.machine()}, {args.threads} torch threads",
             "python": platform.python_version(), "torch": torch.__version__, "poses": args.poses,
             "trajectories": args.trajectories, "paper_budget_s": args.paper_budget, "settings": extra}
-    from deepmapping.tools.run_dir import write_text as write_atomic
+    from deepmapping.output.run_dir import write_text as write_atomic
 
     summary = {name: summarize(runs) for name, runs in results.items()}
     write_atomic(args.out / "results.json", json.dumps({"meta": meta, "summary": summary, "results": results,

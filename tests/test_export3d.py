@@ -6,7 +6,7 @@ from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from deepmapping.geometry import se3
-from deepmapping.tools.export3d import (
+from deepmapping.output.export3d import (
     occupancy_grid,
     occupancy_mesh,
     read_occupancy_grid,
@@ -16,7 +16,7 @@ from deepmapping.tools.export3d import (
     write_occupancy_grid,
     write_registered_cloud,
 )
-from deepmapping.tools.plots3d import plot_cloud_3d, plot_trajectories_3d, view_basis
+from deepmapping.output.plots3d import plot_cloud_3d, plot_trajectories_3d, view_basis
 
 CENTRE, RADIUS = np.array([0.1, -0.2, 0.3]), 0.7
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from deepmapping.tools import plots
+from deepmapping.output import plots
 
 HALF = 10.0  # square room [-10, 10]^2
 

@@ -7,8 +7,8 @@ from pathlib import Path
 import typer
 
 from deepmapping.geometry.alignment import align_poses_2d
+from deepmapping.output.plots import plot_trajectories
 from deepmapping.sim import dataset, maps
-from deepmapping.tools.plots import plot_trajectories
 
 
 def run_demo(out: Path, poses: int, seed: int) -> None:

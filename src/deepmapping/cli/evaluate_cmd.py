@@ -12,7 +12,7 @@ from deepmapping.io.depth import DepthOptions
 from deepmapping.io.loaders import load_scans
 from deepmapping.io.poses import read_poses_npy
 from deepmapping.io.poses3d import read_poses_3d
-from deepmapping.tools.run_dir import write_json
+from deepmapping.output.run_dir import write_json
 
 
 def run_evaluate(run_dir: Path, gt: Path | None = None) -> dict:

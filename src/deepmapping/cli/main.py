@@ -14,10 +14,10 @@ from deepmapping.cli.experiment_cmd import run_experiment_cli
 from deepmapping.config import PROFILES
 from deepmapping.errors import DeepMappingError
 from deepmapping.methods.registry import METHODS as METHODS_BY_NAME
+from deepmapping.output.run_dir import default_run_dir
 from deepmapping.sim import dataset, maps
 from deepmapping.sim.lidar import write_lidar_dataset
 from deepmapping.sim.rgbd import write_rgbd_dataset
-from deepmapping.tools.run_dir import default_run_dir
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="DeepMapping: register many 2D laser scans or 3D point clouds into one map by training an "

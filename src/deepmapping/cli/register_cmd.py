@@ -14,7 +14,7 @@ from deepmapping.io.atomic import make_folder
 from deepmapping.io.depth import DepthOptions, parse_frames, parse_image_size
 from deepmapping.io.loaders import load_scans
 from deepmapping.io.lock import folder_lock
-from deepmapping.tools.run_dir import write_config, write_json, write_run
+from deepmapping.output.run_dir import write_config, write_json, write_run
 
 
 def build_config(profile, config_file, method, epochs, warm_start, init, device, seed, sets, is_3d=False):

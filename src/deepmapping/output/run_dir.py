@@ -23,9 +23,9 @@ from deepmapping.io.ply import write_ply
 from deepmapping.io.poses import write_pose_text, write_poses_npy
 from deepmapping.io.poses3d import write_kitti_poses, write_tum_poses
 from deepmapping.methods.keyframes import place_all_scans
-from deepmapping.tools import plots
-from deepmapping.tools.run_dir3d import write_run_3d
-from deepmapping.tools.run_files import write_config, write_history_csv
+from deepmapping.output import plots
+from deepmapping.output.run_dir3d import write_run_3d
+from deepmapping.output.run_files import write_config, write_history_csv
 
 
 def default_run_dir(method: str, root: str | Path = "runs") -> Path:

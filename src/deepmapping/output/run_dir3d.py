@@ -13,16 +13,16 @@ from deepmapping.geometry import se3
 from deepmapping.io.atomic import make_folder, write_json
 from deepmapping.io.poses3d import write_kitti_poses, write_poses_npy_3d, write_tum_poses
 from deepmapping.io.threedtk import is_3dtk_folder, write_frames, write_pose
-from deepmapping.solver.resolution import export_voxel
-from deepmapping.tools import plots, plots3d
-from deepmapping.tools.export3d import (
+from deepmapping.output import plots, plots3d
+from deepmapping.output.export3d import (
     occupancy_grid,
     occupancy_mesh,
     write_mesh_ply,
     write_occupancy_grid,
     write_registered_cloud,
 )
-from deepmapping.tools.run_files import write_config, write_history_csv
+from deepmapping.output.run_files import write_config, write_history_csv
+from deepmapping.solver.resolution import export_voxel
 
 
 def write_poses_3d(out: Path, poses: np.ndarray) -> None:

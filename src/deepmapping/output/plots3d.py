@@ -1,6 +1,6 @@
 """Off-screen pictures of 3D runs: the registered cloud (perspective + top view) and trajectories.
 
-Same rules as ``tools/plots.py``: matplotlib ``Figure`` rendered by Agg, one PNG written
+Same rules as ``output/plots.py``: matplotlib ``Figure`` rendered by Agg, one PNG written
 atomically, no window. Poses are (K, 4, 4) sensor-to-world; the sensor positions (their
 translations) form the trajectory. Lengths are drawn as ``coordinate * unit_scale`` in ``unit``.
 
@@ -15,8 +15,8 @@ from __future__ import annotations
 import numpy as np
 
 from deepmapping.evaluation.metrics3d import align_poses_3d
-from deepmapping.tools.export3d import registered_cloud, scan_colors
-from deepmapping.tools.plots import legend_below, new_figure, save_figure, unit_label
+from deepmapping.output.export3d import registered_cloud, scan_colors
+from deepmapping.output.plots import legend_below, new_figure, save_figure, unit_label
 
 __all__ = ["view_basis", "plot_cloud_3d", "plot_trajectories_3d"]
 
