@@ -223,6 +223,13 @@ def test_one_evaluate_for_2d_and_3d_with_the_same_keys():
     assert set(two) == set(three)
     assert two["success_threshold"] == 20.0 and two["ate"] < 1e-9 and three["ate"] < 1e-9
     assert evaluate_any(gt3, gt3, pts3, valid3, avd_protocol=True)["success_threshold"] == 0.45  # AVD's 450 mm, in m
+    from deepmapping.evaluation import ate as ate_any
+
+    moved2, moved3 = gt2.copy(), gt3.copy()
+    moved2[0, :2] += 1.0
+    moved3[0, :3, 3] += 1.0
+    assert ate_any(moved2, gt2) == pytest.approx(ate(moved2, gt2)) and ate_any(moved2, gt2) > 0.1
+    assert ate_any(moved3, gt3) > 0.1
 
 
 # ---------------------------------------------------------------- ICP

@@ -15,7 +15,7 @@ import numpy as np
 from deepmapping.config import Config, load_config, resolve_profile
 from deepmapping.data import ScanSet
 from deepmapping.errors import ConfigError, InputError
-from deepmapping.evaluation import evaluate
+from deepmapping.evaluation import ate, evaluate
 from deepmapping.evaluation.evo_metrics import evo_metrics
 from deepmapping.evaluation.relations import read_relations, score_relations
 from deepmapping.io.poses import read_poses
@@ -186,10 +186,6 @@ def _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_place=N
     def evaluate(poses_norm: np.ndarray) -> float | None:
         if scans.gt_poses is None:
             return None
-        if scans.is_3d:
-            from deepmapping.evaluation.metrics3d import ate_3d as ate
-        else:
-            from deepmapping.evaluation.metrics import ate
         return ate(frame.from_norm(poses_norm), scans.gt_poses) * scans.unit_scale
 
     trainer = Trainer(cfg, model, valid, scans.ordered, evaluate)

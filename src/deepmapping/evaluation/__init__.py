@@ -4,10 +4,17 @@ from __future__ import annotations
 
 import numpy as np
 
+from deepmapping.evaluation.metrics import ate as ate_2d
 from deepmapping.evaluation.metrics import evaluate as evaluate_2d
-from deepmapping.evaluation.metrics3d import evaluate_3d
+from deepmapping.evaluation.metrics3d import ate_3d, evaluate_3d
 
-__all__ = ["evaluate"]
+__all__ = ["ate", "evaluate"]
+
+
+def ate(est, gt) -> float:
+    """ATE (RMSE of positions after the closed-form rigid alignment) of 2D poses (K, 3) or 3D
+    poses (K, 4, 4), in the poses' units."""
+    return ate_3d(est, gt) if np.asarray(gt).ndim == 3 else ate_2d(est, gt)
 
 
 def evaluate(est, gt, points, valid, unit_scale: float = 1.0, success_threshold: float | None = None,
