@@ -8,6 +8,7 @@ for. ``resolve_profile`` picks the one a run uses.
 
 from __future__ import annotations
 
+import copy
 import json
 from pathlib import Path
 from typing import Annotated, Literal
@@ -335,25 +336,17 @@ def profile_settings(profile: str) -> dict:
     own = {k: v for k, v in PROFILES[profile].items() if k not in PROFILE_KEYS}
     base = PROFILES[profile].get("base")
     if base is None:
-        missing = sorted(_dotted_keys(Config().model_dump()) - {"profile"} - _dotted_keys(own))
+        missing = sorted(set(_flatten(Config().model_dump())) - {"profile"} - set(_flatten(own)))
         if missing:
             raise ConfigError(f"{PROFILE_DIR / profile}.yaml: a profile without 'base' lists every setting; "
                               f"missing {', '.join(missing)}")
-        return own
+        return copy.deepcopy(own)  # callers may change what they get; PROFILES stays as read
     return _deep_merge(profile_settings(base), own)
 
 
 def profile_changes(profile: str) -> dict:
     """What a profile written as ``base`` + changes changes, as dotted keys ({"loss.chamfer_weight": 50.0})."""
-    own = {k: v for k, v in PROFILES[profile].items() if k not in PROFILE_KEYS}
-
-    def flat(data: dict, prefix: str = "") -> dict:
-        out = {}
-        for k, v in data.items():
-            out |= flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v}
-        return out
-
-    return flat(own)
+    return _flatten({k: v for k, v in PROFILES[profile].items() if k not in PROFILE_KEYS})
 
 
 def load_config(profile: str = "default", path: str | Path | None = None, overrides: dict | None = None) -> Config:
@@ -392,10 +385,11 @@ def _read_config_file(path: Path) -> dict:
     return loaded
 
 
-def _dotted_keys(data: dict, prefix: str = "") -> set[str]:
-    out = set()
+def _flatten(data: dict, prefix: str = "") -> dict:
+    """{"a": {"b": 1}} -> {"a.b": 1}"""
+    out = {}
     for k, v in data.items():
-        out |= _dotted_keys(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}"}
+        out |= _flatten(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v}
     return out
 
 
