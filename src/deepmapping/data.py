@@ -27,7 +27,8 @@ class FullSequence:
     points: np.ndarray | None = None
     valid: np.ndarray | None = None
     placement: str = "icp"  # non-keyframes: "odometry" (from the nearest keyframe) or "icp" (then refined)
-    _cache: tuple = field(default=(None, None), repr=False, compare=False)
+    # methods.keyframes.place_all_scans's last (keyframe poses as bytes, every scan's poses)
+    placed_cache: tuple = field(default=(None, None), repr=False, compare=False)
 
 
 @dataclass

@@ -20,12 +20,12 @@ def place_all_scans(seq: FullSequence, keyframe_poses: np.ndarray) -> np.ndarray
     cached on ``seq`` (the run folder and the relations score ask for the same poses)."""
     kp = np.asarray(keyframe_poses, dtype=np.float64)
     key = kp.tobytes()
-    if seq._cache[0] == key:
-        return seq._cache[1].copy()
+    if seq.placed_cache[0] == key:
+        return seq.placed_cache[1].copy()
     out = poses_for_all_scans(seq.keyframes, kp, seq.odometry, seq.timestamps)
     if seq.placement == "icp" and seq.points is not None:
         out = refine_by_scan_matching(out, seq.keyframes, seq.timestamps, seq.points, seq.valid)
-    seq._cache = (key, out)
+    seq.placed_cache = (key, out)
     return out.copy()
 
 

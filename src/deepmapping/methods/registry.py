@@ -29,7 +29,9 @@ from deepmapping.methods.pso import incremental_pso
 __all__ = ["Method", "METHODS", "CLASSICAL", "WARM_STARTS", "get_method", "run_classical",
            "pairwise_settings"]
 
-Run = Callable[[ScanSet, Config, "np.ndarray | None", "Callable[[int, int], None] | None"], np.ndarray]
+# (scans, config, initial poses, progress) -> poses, or (poses, what the method reports of its run)
+Run = Callable[[ScanSet, Config, "np.ndarray | None", "Callable[[int, int], None] | None"],
+               "np.ndarray | tuple[np.ndarray, dict]"]
 
 
 @dataclass(frozen=True)
