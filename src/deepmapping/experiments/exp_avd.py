@@ -4,7 +4,8 @@ Simulated AVD-style RGB-D trajectories (``deepmapping simulate --kind rgbd``: 30
 12 views per position 30 deg apart, depth images), each registered by DeepMapping and by the
 direct optimization, with the Chamfer term (lambda = 0.1, "+ Ch") and without (BCE only),
 from a cold start (no initial poses: the cold-start curriculum; the paper: identity poses) and
-warm-started by planar ICP (our default), and by multiway registration (the paper's baseline).
+warm-started by planar ICP (our default), by multiway registration (the paper's baseline), and by
+incremental planar and 6-DoF point-to-plane ICP.
 Reported: box plots of the ATE and the point distance (Fig. 9), the success rate (ATE < 450 mm)
 next to the paper's Table 2.
 
@@ -36,6 +37,7 @@ PROFILE = "default-3d"
 METHODS: dict[str, tuple[str, dict | None]] = {
     "identity": ("no registration", None),
     "icp-planar": ("planar ICP", {"method": "icp-planar"}),
+    "icp-plane": ("point-to-plane ICP (6-DoF)", {"method": "icp-plane"}),
     "multiway": ("multiway", {"method": "multiway"}),
 }
 for _cold in (True, False):
