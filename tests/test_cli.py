@@ -464,3 +464,6 @@ def test_experiment_command_runs_resumes_and_refuses_unknown_names(tmp_path):
     bad = dm("experiment", "nope", "--out", tmp_path / "nope")
     assert_one_line_error(bad, "nope")
     assert not (tmp_path / "nope").exists()
+    bad = dm("experiment", "1d", "--data", tmp_path, "--out", tmp_path / "nope")  # 1d simulates its data
+    assert_one_line_error(bad, "reads no data folder")
+    assert not (tmp_path / "nope").exists()

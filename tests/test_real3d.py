@@ -1,22 +1,20 @@
-"""Small versions of the real-data checks of benchmarks/real_3d.py: the Stanford bunny and 3DTK."""
+"""Small versions of the real-data checks of `deepmapping experiment real-3d`: the Stanford bunny and 3DTK."""
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data"  # excerpts of ../shared/data (tests/data/make_excerpts.py)
-sys.path.insert(0, str(ROOT / "benchmarks"))
 
 
 def test_bunny_check_small():
     from deepmapping.api import register
     from deepmapping.config import load_config
+    from deepmapping.experiments.real_3d import coarse_start
     from deepmapping.io.bunny import bunny_pose_errors, load_bunny, scan_centroids
-    from real_3d import coarse_start
 
     scans = load_bunny(DATA / "bunny", max_points=300)
     centroids = scan_centroids(scans.points, scans.valid)

@@ -91,3 +91,26 @@ def test_results_are_readable_like_any_new_file(tmp_path):
     os.umask(mask)
     atomic_write(tmp_path / "a.txt", lambda f: f.write(b"x"))
     assert (tmp_path / "a.txt").stat().st_mode & 0o777 == 0o666 & ~mask
+
+
+def test_data_folder_of_an_experiment_on_real_recordings(tmp_path, monkeypatch):
+    """An experiment with DATA reads --data, or ../shared/data/<DATA> from where it is run; one
+    that simulates its data refuses --data; a missing folder is a one-line error naming it."""
+    from types import SimpleNamespace
+
+    from deepmapping.errors import ConfigError
+    from deepmapping.experiments import data_folder, experiment_module
+
+    real = SimpleNamespace(DATA="carmen")
+    (tmp_path / "logs").mkdir()
+    assert data_folder("x", real, tmp_path / "logs") == (tmp_path / "logs").resolve()
+    with pytest.raises(ConfigError, match="nowhere: folder not found$"):
+        data_folder("x", real, tmp_path / "nowhere")
+    monkeypatch.chdir(tmp_path / "logs")
+    with pytest.raises(ConfigError, match=r"shared/data/carmen: folder not found \(give the folder with --data\)"):
+        data_folder("x", real, None)
+    (tmp_path / "shared" / "data" / "carmen").mkdir(parents=True)
+    assert data_folder("x", real, None) == (tmp_path / "shared" / "data" / "carmen").resolve()
+    assert data_folder("1d", experiment_module("1d"), None) is None
+    with pytest.raises(ConfigError, match="experiment '1d' reads no data folder"):
+        data_folder("1d", experiment_module("1d"), tmp_path)

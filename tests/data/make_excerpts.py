@@ -10,7 +10,7 @@ root: ``.venv/bin/python tests/data/make_excerpts.py``). Outputs are determinist
 - 3dtk/: README, config.ini, .pose and .frames unchanged; each .3d thinned to 4000 random
   points plus its nearest, farthest and lowest-z points, and the nearest and farthest within
   config.ini's range limits (the loader's range and in-front filters are tested).
-- carmen/ (the layout of ../shared/data/carmen, so benchmarks/carmen.py --data reads it):
+- carmen/ (the layout of ../shared/data/carmen, so `deepmapping experiment carmen --data` reads it):
   fr079.clf.gz: the log's header lines and raw fr079 scans 1000-1599 with the ODOM lines
   between them; corrected/freiburg-079-corrected.log.gz: the same scans of the corrected log
   (573 of the 600); fr079.relations: the relations whose two stamps are both in the excerpt.

@@ -6,17 +6,17 @@ from pathlib import Path
 
 import typer
 
-from deepmapping.experiments import experiment_module
+from deepmapping.experiments import data_folder, experiment_module
 from deepmapping.experiments.runner import run_experiment
 
 
 def run_experiment_cli(name: str, out: Path, quick: bool, jobs: int | None, threads: int, cluster: str | None,
-                       retries: int, only: str | None = None) -> None:
+                       retries: int, only: str | None = None, data: Path | None = None) -> None:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from deepmapping.cli.progress import console
 
-    experiment_module(name)  # an unknown name fails before anything is written
+    data_folder(name, experiment_module(name), data)  # an unknown name or a missing folder fails before anything is written
     columns = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                TextColumn("{task.fields[info]}"), TimeElapsedColumn()]
     with Progress(*columns, console=console) as bar:
@@ -26,7 +26,7 @@ def run_experiment_cli(name: str, out: Path, quick: bool, jobs: int | None, thre
             bar.update(task, completed=done, total=total, info=key)
 
         outcome = run_experiment(name, out, quick=quick, workers=jobs, threads=threads, cluster=cluster,
-                                 retries=retries, progress=progress, only=only)
+                                 retries=retries, progress=progress, only=only, data=data)
     n_err = len(outcome["errors"])
     if n_err:
         console.print(f"[yellow]{n_err} run(s) failed[/] (listed in the report); rerun the same command to retry them")

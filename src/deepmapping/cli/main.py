@@ -13,6 +13,7 @@ from deepmapping.cli.evaluate_cmd import run_evaluate
 from deepmapping.cli.experiment_cmd import run_experiment_cli
 from deepmapping.config import PROFILES
 from deepmapping.errors import DeepMappingError
+from deepmapping.experiments import EXPERIMENTS
 from deepmapping.methods.registry import METHODS as METHODS_BY_NAME
 from deepmapping.output.run_dir import default_run_dir
 from deepmapping.sim import dataset, maps
@@ -181,7 +182,7 @@ def evaluate(
                     "  deepmapping experiment robustness --out exp/robustness\n\n"
                     "  deepmapping experiment avd --out exp/avd --cluster tcp://scheduler:8786")
 def experiment(
-    name: str = typer.Argument(..., help="2d | avd | relocalization | warm-start | ablations | 1d | robustness"),
+    name: str = typer.Argument(..., help=" | ".join(EXPERIMENTS)),
     out: Path = typer.Option(..., help="Folder for the runs, pictures and report.md (rerun to resume)."),
     quick: bool = typer.Option(False, "--quick", help="A small size that runs in minutes on 2 CPU cores."),
     jobs: Optional[int] = typer.Option(None, help="Runs at a time on this machine (default: one per core)."),
@@ -191,9 +192,11 @@ def experiment(
     retries: int = typer.Option(1, help="Times a failed run is retried before it is reported."),
     only: Optional[str] = typer.Option(None, help="Run only the runs whose key matches this shell pattern "
                                        "(e.g. 'deepmapping-cold-*'); the report still uses every finished run."),
+    data: Optional[Path] = typer.Option(None, help="The folder of real recordings an experiment on them reads "
+                                        "(default: ../shared/data/<its folder>)."),
 ):
     """Reproduce one of the paper's experiments: independent runs in parallel, then a markdown report."""
-    run_experiment_cli(name, out, quick, jobs, threads, cluster, retries, only)
+    run_experiment_cli(name, out, quick, jobs, threads, cluster, retries, only, data)
 
 
 @app.command(epilog="Example:\n\n  deepmapping demo --out demo")

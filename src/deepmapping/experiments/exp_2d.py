@@ -57,7 +57,7 @@ TIME_MATCHED = ("deepmapping-paper", "goicp", "pso")  # these get a wall-time bu
 
 # Seconds per pose the default profile takes on the paper's trajectories (256 beams, 250
 # epochs) with one torch thread on an idle core: 256 poses take 86 s with 2 threads
-# (benchmarks/speed_2d.py), about 120 s with one. (On a machine loaded 2-3x, 128 poses took
+# (`deepmapping experiment speed`), about 120 s with one. (On a machine loaded 2-3x, 128 poses took
 # 231-262 s: a budget measured under load would be 4x too generous.)
 BUDGET_S_PER_POSE = 0.5
 NUM_TRAJECTORIES = 75

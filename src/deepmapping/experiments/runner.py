@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 from deepmapping.errors import ConfigError
-from deepmapping.experiments import experiment_module
+from deepmapping.experiments import data_folder, experiment_module
 from deepmapping.experiments.sweep import load_finished, run_sweep
 from deepmapping.io.atomic import atomic_write, make_folder
 from deepmapping.io.lock import folder_lock
@@ -16,15 +16,18 @@ from deepmapping.io.lock import folder_lock
 
 def run_experiment(name: str, out: str | Path, *, quick: bool = False, workers: int | None = None,
                    threads: int = 1, cluster: str | None = None, retries: int = 1, progress=None,
-                   only: str | None = None) -> dict:
+                   only: str | None = None, data: str | Path | None = None) -> dict:
     """Run experiment ``name`` into ``out``; return {"report", "results", "errors", "wall_s"}.
 
     Finished runs in ``out/runs`` are kept and not redone; the report is rewritten from all
     results each time (runs that failed are listed in it). ``only``: a shell pattern; only the
     runs whose key matches it are run (the report uses every finished run all the same).
+    ``data``: the folder of real recordings an experiment on them reads (default
+    ``../shared/data/<its DATA>``; see :func:`deepmapping.experiments.data_folder`).
     """
     module = experiment_module(name)
-    jobs = module.jobs(quick)
+    folder = data_folder(name, module, data)
+    jobs = module.jobs(quick) if folder is None else module.jobs(quick, str(folder))
     chosen = [j for j in jobs if only is None or fnmatch.fnmatchcase(j.key, only)]
     if not chosen:
         raise ConfigError(f"--only {only!r} matches none of the {len(jobs)} runs of experiment {name}")
@@ -37,6 +40,8 @@ def run_experiment(name: str, out: str | Path, *, quick: bool = False, workers: 
         wall = time.perf_counter() - t0
         settings = {"experiment": name, "quick": quick, "jobs": len(jobs), "only": only, "workers": workers,
                     "threads": threads, "cluster": cluster, "sweep_wall_s": wall, "failed": sorted(errors)}
+        if folder is not None:
+            settings["data"] = str(folder)
         atomic_write(out / "experiment.json", lambda f: f.write(json.dumps(settings, indent=1).encode()))
         report = module.report(out, results, quick)
         if errors:

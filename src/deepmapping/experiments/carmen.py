@@ -1,0 +1,181 @@
+"""``deepmapping experiment carmen``: the Freiburg SLAM benchmark logs, scored on their relations.
+
+For each log of the data folder (``--data``, default ``../shared/data/carmen``: ``<log>.clf.bz2``,
+``.clf.gz`` or ``.clf``, ``<log>.relations``, ``corrected/``) the keyframes (``motion:0.5,15``)
+are registered by each method, every scan of the log is placed from its nearest keyframe
+(odometry, then ICP to the keyframes around it), and all relations of Kümmerle et al. 2009 are
+scored: translational (m) and rotational (deg) errors, mean ± std and median, split at 10 s.
+
+Methods: ``odometry`` (the log's poses), ``icp`` (incremental point-to-point ICP, each pair
+started from odometry), ``dm-odometry`` / ``dm-icp`` (DeepMapping, default profile, warm-started
+from odometry / from that ICP), ``loop-closure`` (incremental ICP with loop closures and
+pose-graph optimization), ``dm-loop-closure`` (DeepMapping warm-started from it), and
+``reference``: the corrected trajectory shipped with the benchmark
+(``corrected/<name>-corrected.log.gz``), matched to the raw scans by their ranges; the other
+rows are also scored on the relations the reference covers (both scans in the corrected log).
+Each run is done in a fresh process of its own, so its wall time and peak RSS are its own.
+"""
+
+from __future__ import annotations
+
+import resource
+import time
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import current_process, get_context
+from pathlib import Path
+
+import numpy as np
+
+from deepmapping.api import evaluate_relations, register
+from deepmapping.config import load_config
+from deepmapping.errors import ConfigError
+from deepmapping.evaluation.relations import Relations, read_relations, score_relations
+from deepmapping.experiments.base import Job
+from deepmapping.experiments.report import write_report
+from deepmapping.io.carmen import match_scans, read_carmen
+from deepmapping.io.loaders import load_scans
+from deepmapping.methods.keyframes import place_all_scans
+
+DATA = "carmen"  # the folder under ../shared/data
+LOGS = ("intel", "fr079")  # the logs with relations
+CORRECTED = {"intel": "intel-corrected.log.gz", "fr079": "freiburg-079-corrected.log.gz"}
+METHODS = {  # name -> (method, warm start); "reference" is the corrected log
+    "odometry": (None, "file"),
+    "icp": ("icp-point", "file"),
+    "dm-odometry": ("deepmapping", "file"),
+    "dm-icp": ("deepmapping", "icp-point"),
+    "loop-closure": ("loop-closure", "file"),
+    "dm-loop-closure": ("deepmapping", "loop-closure"),
+}
+FULL = {"keyframes": "motion:0.5,15", "epochs": None}
+QUICK = {"keyframes": "every:60", "epochs": 2}  # a smoke run in seconds, not a measurement
+
+
+def log_file(data: Path, log: str) -> Path | None:
+    """``<log>.clf.bz2`` (the benchmark's files), ``.clf.gz`` (the excerpts in tests/data) or ``.clf``."""
+    for suffix in (".clf.bz2", ".clf.gz", ".clf"):
+        if (Path(data) / f"{log}{suffix}").is_file():
+            return Path(data) / f"{log}{suffix}"
+    return None
+
+
+def corrected_file(data: Path, log: str) -> Path | None:
+    path = Path(data) / "corrected" / CORRECTED[log]
+    return path if path.is_file() else None
+
+
+def jobs(quick: bool, data: str) -> list[Job]:
+    """One run per (log, method) for each log of ``data`` that has its relations; ``reference``
+    where the corrected log is there too."""
+    s = QUICK if quick else FULL
+    logs = [g for g in LOGS if log_file(data, g) and (Path(data) / f"{g}.relations").is_file()]
+    if not logs:
+        raise ConfigError(f"{data}: no log with its relations ({', '.join(f'{g}.clf.bz2 + {g}.relations' for g in LOGS)})")
+    out = []
+    for log in logs:
+        names = (["reference"] if corrected_file(data, log) else []) + list(METHODS)
+        out += [Job(f"{log}-{name}", "deepmapping.experiments.carmen:run",
+                    {"data": data, "log": log, "name": name} | s) for name in names]
+    return out
+
+
+def run(data: str, log: str, name: str, keyframes: str, epochs: int | None = None) -> dict:
+    """One method on one log, in a fresh process (its own wall time and peak RSS; in this one
+    where it may have no children: a daemonic worker of a Dask cluster)."""
+    import torch
+
+    args = (data, log, name, keyframes, epochs, torch.get_num_threads())
+    if current_process().daemon:
+        row = _run_here(*args)
+    else:
+        with ProcessPoolExecutor(1, mp_context=get_context("spawn")) as pool:
+            row = pool.submit(_run_here, *args).result()
+    return row | {"log": log, "name": name, "keyframes_rule": keyframes}
+
+
+def _run_here(data: str, log: str, name: str, keyframes: str, epochs: int | None, threads: int) -> dict:
+    import torch
+
+    torch.set_num_threads(threads)
+    t0 = time.perf_counter()
+    row = _reference(Path(data), log) if name == "reference" else _register(Path(data), log, name, keyframes, epochs,
+                                                                              threads)
+    return row | {"wall_s": time.perf_counter() - t0, "threads": threads,
+                  "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
+
+
+def _register(data: Path, log: str, name: str, keyframes: str, epochs: int | None, threads: int) -> dict:
+    scans = load_scans(log_file(data, log), keyframes=keyframes)
+    method, warm = METHODS[name]
+    if method is None:
+        row = evaluate_relations(scans, scans.init_poses) | {"keyframes": scans.num_scans}
+        return row | {"on_reference": _on_reference(data, log, scans, scans.init_poses)}
+    overrides = {"method": method, "warm_start.method": warm, "threads": threads}
+    if method == "deepmapping" and epochs is not None:
+        overrides["optim.epochs"] = epochs
+    result = register(scans, load_config("default", overrides=overrides))
+    return result.metrics | {"keyframes": scans.num_scans, "runtime_s": result.runtime_s,
+                             "on_reference": _on_reference(data, log, scans, result.poses)}
+
+
+def _on_reference(data: Path, log: str, scans, poses) -> dict | None:
+    """The errors on the relations the corrected reference covers (both scans in the corrected
+    log): the like-for-like comparison with the reference row (intel: 90 of 2984)."""
+    if corrected_file(data, log) is None:
+        return None
+    raw = read_carmen(log_file(data, log))
+    idx = match_scans(read_carmen(corrected_file(data, log)), raw)
+    covered = {raw.stamps[k] for k in idx[idx >= 0]}
+    rel = read_relations(data / f"{log}.relations")
+    keep = [a in covered and b in covered for a, b in zip(rel.stamp_i, rel.stamp_j)]
+    sub = Relations([a for a, k in zip(rel.stamp_i, keep) if k], [b for b, k in zip(rel.stamp_j, keep) if k],
+                    rel.motion[np.array(keep)], rel.path)
+    seq = scans.sequence
+    return score_relations(sub, seq.stamps, place_all_scans(seq, poses))
+
+
+def _reference(data: Path, log: str) -> dict:
+    raw = read_carmen(log_file(data, log))
+    ref = read_carmen(corrected_file(data, log))
+    idx = match_scans(ref, raw)
+    ok = idx >= 0
+    scores = score_relations(read_relations(data / f"{log}.relations"), [raw.stamps[k] for k in idx[ok]],
+                             ref.poses[ok])
+    return {"relations": scores, "keyframes": int(ok.sum())}
+
+
+def _cell(s: dict | None, what: str) -> str:
+    unit = "m" if what == "trans" else "deg"
+    if not s or not s.get("count"):
+        return "-"
+    return f"{s[f'{what}_mean_{unit}']:.3f} ± {s[f'{what}_std_{unit}']:.3f} / {s[f'{what}_median_{unit}']:.3f}"
+
+
+def report(out: Path, results: dict[str, dict], quick: bool) -> Path:
+    """A relations table per log (the methods in the order of the runs)."""
+    rule = (QUICK if quick else FULL)["keyframes"]
+    sections = [f"Keyframes `{rule}`{' (quick: a smoke run, not a measurement)' if quick else ''}. Errors: "
+                "mean ± std / median over the relations whose two scans the trajectory has (`reference` "
+                "covers only the scans of the corrected log). Short: relations spanning < 10 s, long: > 10 s "
+                "(mostly loop closures). Wall time and peak RSS: each run in its own process."]
+    for log in LOGS:
+        rows = [r for r in results.values() if r.get("log") == log]
+        if not rows:
+            continue
+        order = ["reference", *METHODS]
+        rows.sort(key=lambda r: order.index(r["name"]))
+        lines = [f"## {log}", "",
+                 "| method | scans registered | relations scored | trans. (m) | rot. (deg) | short: trans. (m) "
+                 "| long: trans. (m) | on the reference's relations: trans. (m) | rot. (deg) | wall (s) "
+                 "| peak RSS (MB) |",
+                 "|---|---|---|---|---|---|---|---|---|---|---|"]
+        for r in rows:
+            rel = r["relations"]
+            sub = r.get("on_reference", rel) or {}
+            lines.append(f"| {r['name']} | {r['keyframes']} | {rel['all'].get('count', 0)} of {rel['relations']} | "
+                         f"{_cell(rel['all'], 'trans')} | {_cell(rel['all'], 'rot')} | "
+                         f"{_cell(rel['short'], 'trans')} | {_cell(rel['long'], 'trans')} | "
+                         f"{_cell(sub.get('all'), 'trans')} | {_cell(sub.get('all'), 'rot')} | "
+                         f"{r['wall_s']:.0f} | {r['peak_rss_mb']:.0f} |")
+        sections.append("\n".join(lines))
+    return write_report(out, "Freiburg SLAM benchmark logs: relations errors (Kümmerle et al. 2009)", sections)
