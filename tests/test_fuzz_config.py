@@ -64,8 +64,9 @@ def assert_sane(cfg: Config) -> None:
     assert lo.chamfer_weight >= 0 and lo.chamfer_window >= 0 and (lo.beams_per_scan is None or lo.beams_per_scan >= 1)
     for v in (ic.voxel_size, ic.max_correspondence_distance, cfg.eval.voxel_size, cfg.eval.success_threshold):
         assert v is None or v > 0
-    assert ic.max_iterations >= 0 and ic.loop_radius > 0 and ic.loop_inlier_distance > 0 and ic.loop_min_gap >= 1
-    assert 0 <= ic.loop_min_overlap <= 1 and all(s > 0 for s in ic.loop_odometry_sigma)
+    lc = cfg.loop
+    assert ic.max_iterations >= 0 and lc.radius > 0 and lc.inlier_distance > 0 and lc.min_gap >= 1
+    assert 0 <= lc.min_overlap <= 1 and all(s > 0 for s in lc.odometry_sigma)
     assert min(ln.kernel_size, ln.dilation, ln.stride) >= 1 and ln.lr_factor >= 0 and mn.lr_factor >= 0
     assert all(c >= 1 for c in ln.conv_channels + ln.fc_channels + ln.point_channels + mn.hidden)
     assert min(mn.grid_levels, mn.grid_features, mn.grid_base, mn.grid_finest) >= 1 and mn.fourier_max_freq > 0
@@ -95,7 +96,7 @@ NONSENSE = [
     ("optim.lr", 0.0), ("optim.lr", -1e-3), ("optim.lr", "fast"), ("optim.batch_size", 0),
     ("optim.eval_every", 0), ("optim.epochs", 2.5), ("optim.max_time_s", -5), ("optim.lr_final_factor", -1),
     ("icp.voxel_size", -0.05), ("icp.voxel_size", 0.0), ("icp.max_correspondence_distance", -1),
-    ("icp.loop_min_overlap", 1.5), ("icp.loop_odometry_sigma", [0.1, float("nan")]), ("icp.loop_radius", 0),
+    ("loop.min_overlap", 1.5), ("loop.odometry_sigma", [0.1, float("nan")]), ("loop.radius", 0),
     ("eval.voxel_size", -1.0), ("eval.success_threshold", 0), ("loss.free_samples", -1),
     ("loss.chamfer_weight", -10), ("loss.beams_per_scan", 0), ("loss.near_hit_distance", float("-inf")),
     ("lnet.conv_channels", [64, 0]), ("lnet.stride", 0), ("mnet.hidden", [128, -1]), ("mnet.coarse_to_fine", 2),

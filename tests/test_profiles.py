@@ -52,3 +52,27 @@ def test_the_readme_lists_every_profile():
     row = next(line for line in readme.splitlines() if line.startswith("| `--profile "))
     listed = row.split("`")[1].removeprefix("--profile ").split("\\|")
     assert listed == [p for p in PROFILES if not p.endswith("-3d")]
+
+
+def test_settings_under_their_old_names_still_load(tmp_path):
+    """The loop-closure settings moved from icp.loop_* to loop.*: overrides and config files
+    (a saved run's config) with the old names load to the new ones; the others stay in icp."""
+    from deepmapping.config import RENAMED
+
+    assert RENAMED["icp.loop_radius"] == "loop.radius" and len(RENAMED) == 9
+    cfg = load_config("default", overrides={"icp.loop_radius": 2.5, "loop.min_gap": 12})
+    assert cfg.loop.radius == 2.5 and cfg.loop.min_gap == 12
+    path = tmp_path / "old.yaml"
+    path.write_text("icp:\n  loop_min_overlap: 0.5\n  max_iterations: 7\nloop:\n  radius: 3.0\n")
+    cfg = load_config("default", path=path)
+    assert (cfg.loop.min_overlap, cfg.loop.radius, cfg.icp.max_iterations) == (0.5, 3.0, 7)
+    assert "loop_radius" not in cfg.model_dump()["icp"]
+    with pytest.raises(ConfigError, match="'loop.radius'"):
+        load_config("default", overrides={"icp.loop_radius": 0})
+    # a checkpoint's settings as an older version dumped them match the same settings now (resume)
+    from deepmapping.config import migrate_settings
+
+    now = load_config("default").model_dump()
+    old = now | {"icp": now["icp"] | {f"loop_{k}": v for k, v in now["loop"].items()}}
+    del old["loop"]
+    assert migrate_settings(old) == now and old != now

@@ -12,7 +12,7 @@ from typing import Callable
 
 import numpy as np
 
-from deepmapping.config import Config, load_config, resolve_profile
+from deepmapping.config import Config, load_config, migrate_settings, resolve_profile
 from deepmapping.data import ScanSet
 from deepmapping.errors import ConfigError, InputError
 from deepmapping.evaluation import ate, evaluate
@@ -146,7 +146,7 @@ def _load_checkpoint(checkpoint, cfg: Config) -> dict | None:
         data = ckpt.load(checkpoint)
     except Exception as exc:  # corrupt file: a torch/pickle error of any kind
         raise InputError(f"{checkpoint}: cannot read checkpoint ({type(exc).__name__})") from None
-    if data["config"] != cfg.model_dump():
+    if migrate_settings(data["config"]) != cfg.model_dump():  # a checkpoint of an older version: its names moved
         raise ConfigError(f"{checkpoint}: was written with other settings; resume with the run's config")
     return data
 

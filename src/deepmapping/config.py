@@ -214,22 +214,28 @@ class ICPConfig(_Section):
     multiway_edges: str = "all"  # 3D multiway registration: "all" pairs or "window:N"
     # icp-planar (3-DoF AVD-like poses): yaw offsets tried per pair, the best fitness wins
     yaw_hypotheses_deg: list[float] = [0.0, 30.0, -30.0]
-    # loop-closure (2D, long sequences; lengths in the scans' units): earlier keyframes within
-    # loop_radius of a new one and at least loop_min_gap keyframes back are matched; a match
-    # is kept when loop_min_overlap of its points lie within loop_inlier_distance
-    loop_radius: float = Field(4.0, gt=0)
-    loop_min_gap: int = Field(30, ge=1)
-    loop_max_candidates: int = Field(3, ge=0)
-    loop_min_overlap: float = Field(0.7, ge=0, le=1)
-    loop_inlier_distance: float = Field(0.1, gt=0)
-    loop_sequential_submap: int = Field(5, ge=1)  # each keyframe is matched to its last N keyframes merged
-    loop_sequential_method: Literal["point", "plane"] = "plane"
+
+
+class LoopClosureConfig(_Section):
+    """``--method loop-closure`` / ``--warm-start loop-closure`` (2D, long sequences; lengths in
+    the scans' units; methods.loop_closure.close_loops takes these as its keyword arguments)."""
+
+    # earlier keyframes within ``radius`` of a new one and at least ``min_gap`` keyframes back are
+    # matched (up to ``max_candidates``); a match is kept when ``min_overlap`` of its points lie
+    # within ``inlier_distance``
+    radius: float = Field(4.0, gt=0)
+    min_gap: int = Field(30, ge=1)
+    max_candidates: int = Field(3, ge=0)
+    min_overlap: float = Field(0.7, ge=0, le=1)
+    inlier_distance: float = Field(0.1, gt=0)
+    sequential_submap: int = Field(5, ge=1)  # each keyframe is matched to its last N keyframes merged
+    sequential_method: Literal["point", "plane"] = "plane"
     # the odometry motion as a prior of each sequential point-to-line match: (metres, degrees)
     # standard deviations; [] = none (corridors then let matches slide)
-    loop_odometry_sigma: list[PosFloat] = [0.1, 5.0]
+    odometry_sigma: list[PosFloat] = [0.1, 5.0]
     # a loop closure is kept only where the matched walls fix both translation directions:
     # smaller / larger eigenvalue of the inliers' mean n n^T (0 = a straight corridor)
-    loop_min_constraint: float = Field(0.2, ge=0, le=1)
+    min_constraint: float = Field(0.2, ge=0, le=1)
 
 
 class WarmStartConfig(_Section):
@@ -261,6 +267,7 @@ class Config(_Section):
     loss: LossConfig = Field(default_factory=LossConfig)
     optim: OptimConfig = Field(default_factory=OptimConfig)
     icp: ICPConfig = Field(default_factory=ICPConfig)
+    loop: LoopClosureConfig = Field(default_factory=LoopClosureConfig)
     curriculum: CurriculumConfig = Field(default_factory=CurriculumConfig)
     warm_start: WarmStartConfig = Field(default_factory=WarmStartConfig)
     eval: EvalConfig = Field(default_factory=EvalConfig)
@@ -272,6 +279,7 @@ class Config(_Section):
         """Apply dotted overrides such as {"optim.epochs": 100}."""
         data = self.model_dump()
         for key, value in overrides.items():
+            key = RENAMED.get(key, key)
             node = data
             *parents, leaf = key.split(".")
             for p in parents:
@@ -284,9 +292,26 @@ class Config(_Section):
         return validate_config(data)
 
 
+# settings that moved (old dotted name -> new); configs and overrides with the old names still load
+RENAMED = {f"icp.loop_{name}": f"loop.{name}" for name in LoopClosureConfig.model_fields}
+
+
+def migrate_settings(data: dict) -> dict:
+    """``data`` with settings under their old names moved to the new ones (RENAMED)."""
+    icp = data.get("icp")
+    if not isinstance(icp, dict) or not any(f"icp.{k}" in RENAMED for k in icp):
+        return data
+    data = dict(data)
+    data["icp"] = {k: v for k, v in icp.items() if f"icp.{k}" not in RENAMED}
+    moved = {RENAMED[f"icp.{k}"].split(".", 1)[1]: v for k, v in icp.items() if f"icp.{k}" in RENAMED}
+    data["loop"] = (data["loop"] if isinstance(data.get("loop"), dict) else {}) | moved
+    return data
+
+
 def validate_config(data: dict) -> Config:
     from pydantic import ValidationError
 
+    data = migrate_settings(data)
     try:
         return Config.model_validate(data)
     except ValidationError as exc:

@@ -105,14 +105,9 @@ def _icp_plane(scans, cfg, init=None, progress=None):
          hint_other_dims=" (3D: multiway)")
 def _loop_closure(scans, cfg, init=None, progress=None):
     """Each pair started from ``init`` (e.g. odometry) or from the identity (methods.loop_closure)."""
-    c = cfg.icp
+    settings = cfg.loop.model_dump() | {"odometry_sigma": tuple(cfg.loop.odometry_sigma) or None}
     guess = np.zeros((scans.num_scans, 3)) if init is None else init
-    poses, _ = close_loops(scans.points, scans.valid, guess, min_gap=c.loop_min_gap, radius=c.loop_radius,
-                           max_candidates=c.loop_max_candidates, min_overlap=c.loop_min_overlap,
-                           inlier_distance=c.loop_inlier_distance, sequential_submap=c.loop_sequential_submap,
-                           sequential_method=c.loop_sequential_method,
-                           odometry_sigma=tuple(c.loop_odometry_sigma) or None,
-                           min_constraint=c.loop_min_constraint, progress=progress)
+    poses, _ = close_loops(scans.points, scans.valid, guess, **settings, progress=progress)
     return poses
 
 
