@@ -78,3 +78,12 @@ def test_the_pairwise_baselines_register_through_the_api(name):
     assert result.metrics["ate"] < 5.0
     # what the method reports about its run (the 2D experiment's columns)
     assert {"goicp": "pairs_optimal", "pso": "mean_rounds"}[name] in result.method_info
+
+
+def test_identity_poses_are_every_scan_at_the_origin_in_the_data_s_pose_shape():
+    rng = np.random.default_rng(0)
+    for dim, shape in ((2, (5, 3)), (3, (5, 4, 4))):
+        scans = ScanSet(points=rng.normal(size=(5, 8, dim)).astype(np.float32), valid=np.ones((5, 8), bool))
+        poses = scans.identity_poses()
+        assert poses.shape == shape == (5, *scans.pose_shape())
+        assert np.array_equal(poses, np.zeros(shape) if dim == 2 else np.broadcast_to(np.eye(4), shape))

@@ -13,7 +13,7 @@ from typing import Callable
 import numpy as np
 
 from deepmapping.config import Config, load_config, migrate_settings, resolve_profile
-from deepmapping.data import ScanSet
+from deepmapping.data import ScanSet, identity_poses
 from deepmapping.errors import ConfigError, InputError
 from deepmapping.evaluation import ate, evaluate
 from deepmapping.evaluation.evo_metrics import evo_metrics
@@ -101,7 +101,7 @@ def warm_start_poses(scans: ScanSet, cfg: Config, progress=None) -> np.ndarray:
     if ws.method == "auto":
         ws = ws.model_copy(update={"method": auto_warm_start(scans)})
     if ws.method == "none":
-        return np.tile(np.eye(4), (scans.num_scans, 1, 1)) if scans.is_3d else np.zeros((scans.num_scans, 3))
+        return scans.identity_poses()
     if ws.method == "file":
         if scans.is_3d and scans.init_poses is not None:  # the loader read the file (in the scans' frames)
             return np.asarray(scans.init_poses, dtype=np.float64)
@@ -248,7 +248,7 @@ def _localize_fn(model, frame, device):
         mask = np.ones(pts.shape[:2], bool) if valid is None else np.asarray(valid, dtype=bool)
         pts = np.where(mask[..., None], pts, 0.0) / frame.scale  # invalid beams enter as zeros, as in training
         if init is None:
-            init = np.tile(np.eye(4), (len(pts), 1, 1)) if model.is_3d else np.zeros((len(pts), 3))
+            init = identity_poses(len(pts), model.is_3d)
         prior = frame.to_norm(np.asarray(init, dtype=np.float64))
         out = [model.localize(torch.as_tensor(pts[i : i + chunk], dtype=torch.float32, device=device),
                               torch.as_tensor(mask[i : i + chunk], device=device),

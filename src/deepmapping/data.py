@@ -9,6 +9,11 @@ import numpy as np
 from deepmapping.errors import InputError
 
 
+def identity_poses(num: int, is_3d: bool) -> np.ndarray:
+    """``num`` poses at the origin: (num, 4, 4) identity matrices (3D) or (num, 3) zeros (2D, [x, y, theta])."""
+    return np.tile(np.eye(4), (num, 1, 1)) if is_3d else np.zeros((num, 3))
+
+
 @dataclass
 class FullSequence:
     """The whole input sequence when only keyframes are registered (e.g. a CARMEN log).
@@ -80,6 +85,10 @@ class ScanSet:
 
     def pose_shape(self) -> tuple[int, ...]:
         return (4, 4) if self.is_3d else (3,)
+
+    def identity_poses(self) -> np.ndarray:
+        """Every scan at the origin (no registration; the start of a cold start)."""
+        return identity_poses(self.num_scans, self.is_3d)
 
     def validate(self) -> "ScanSet":
         """Check shapes and values; raise InputError naming the offending scan."""

@@ -89,7 +89,7 @@ def run_bunny(data: str, method: str, start: str | None, max_points: int, epochs
     both starts themselves."""
     scans = load_bunny(Path(data) / "bunny", max_points=max_points)
     centroids = scan_centroids(scans.points, scans.valid)
-    starts = {"coarse": coarse_start(scans), "identity": np.tile(np.eye(4), (scans.num_scans, 1, 1))}
+    starts = {"coarse": coarse_start(scans), "identity": scans.identity_poses()}
     row = {"data": "bunny", "method": method, "start": start}
     if method == "start":
         return row | {"starts": {n: bunny_pose_errors(p, scans.gt_poses, scans.names, centroids)

@@ -106,7 +106,7 @@ def _icp_plane(scans, cfg, init=None, progress=None):
 def _loop_closure(scans, cfg, init=None, progress=None):
     """Each pair started from ``init`` (e.g. odometry) or from the identity (methods.loop_closure)."""
     settings = cfg.loop.model_dump() | {"odometry_sigma": tuple(cfg.loop.odometry_sigma) or None}
-    guess = np.zeros((scans.num_scans, 3)) if init is None else init
+    guess = scans.identity_poses() if init is None else init
     poses, _ = close_loops(scans.points, scans.valid, guess, **settings, progress=progress)
     return poses
 
