@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import importlib
 import re
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
+from multiprocessing import current_process, get_context
 
 
 @dataclass(frozen=True)
@@ -35,3 +37,12 @@ def call_job(func: str, kwargs: dict, threads: int = 1) -> dict:
     torch.set_num_threads(threads)
     module, name = func.split(":")
     return getattr(importlib.import_module(module), name)(**kwargs)
+
+
+def in_fresh_process(func, *args):
+    """``func(*args)`` in a fresh spawned process, so that its wall time and peak RSS are its own;
+    in this process where it may have no children (a daemonic worker of a Dask cluster)."""
+    if current_process().daemon:
+        return func(*args)
+    with ProcessPoolExecutor(1, mp_context=get_context("spawn")) as pool:
+        return pool.submit(func, *args).result()

@@ -20,8 +20,6 @@ from __future__ import annotations
 
 import resource
 import time
-from concurrent.futures import ProcessPoolExecutor
-from multiprocessing import current_process, get_context
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +28,7 @@ from deepmapping.api import evaluate_relations, register
 from deepmapping.config import load_config
 from deepmapping.errors import ConfigError
 from deepmapping.evaluation.relations import Relations, read_relations, score_relations
-from deepmapping.experiments.base import Job
+from deepmapping.experiments.base import Job, in_fresh_process
 from deepmapping.experiments.report import write_report
 from deepmapping.io.carmen import match_scans, read_carmen
 from deepmapping.io.loaders import load_scans
@@ -84,12 +82,7 @@ def run(data: str, log: str, name: str, keyframes: str, epochs: int | None = Non
     where it may have no children: a daemonic worker of a Dask cluster)."""
     import torch
 
-    args = (data, log, name, keyframes, epochs, torch.get_num_threads())
-    if current_process().daemon:
-        row = _run_here(*args)
-    else:
-        with ProcessPoolExecutor(1, mp_context=get_context("spawn")) as pool:
-            row = pool.submit(_run_here, *args).result()
+    row = in_fresh_process(_run_here, data, log, name, keyframes, epochs, torch.get_num_threads())
     return row | {"log": log, "name": name, "keyframes_rule": keyframes}
 
 

@@ -26,8 +26,6 @@ import re
 import resource
 import shutil
 import time
-from concurrent.futures import ProcessPoolExecutor
-from multiprocessing import current_process, get_context
 from pathlib import Path
 from tempfile import TemporaryDirectory
 
@@ -36,7 +34,7 @@ from scipy.io import loadmat, savemat
 
 from deepmapping.api import register
 from deepmapping.config import load_config
-from deepmapping.experiments.base import Job
+from deepmapping.experiments.base import Job, in_fresh_process
 from deepmapping.experiments.report import image, save_figure, write_report
 from deepmapping.io.loaders import load_scans
 from deepmapping.output.run_dir import write_run
@@ -109,11 +107,7 @@ def _fresh(data: str, out: str, profile: str, overrides: dict) -> dict:
     it may have no children: a daemonic worker of a Dask cluster)."""
     import torch
 
-    args = (data, out, profile, overrides, torch.get_num_threads())
-    if current_process().daemon:
-        return run_method(*args)
-    with ProcessPoolExecutor(1, mp_context=get_context("spawn")) as pool:
-        return pool.submit(run_method, *args).result()
+    return in_fresh_process(run_method, data, out, profile, overrides, torch.get_num_threads())
 
 
 def run_method(data: str, out: str, profile: str, overrides: dict, threads: int) -> dict:

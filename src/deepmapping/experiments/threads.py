@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deepmapping.api import evaluate_poses, register
+from deepmapping.api import register
 from deepmapping.config import load_config
 from deepmapping.experiments.base import Job
 from deepmapping.experiments.report import markdown_table, write_report
@@ -44,7 +44,7 @@ def run(trajectory: int, seed: int, threads: int, num_poses: int | None = None, 
         overrides["optim.epochs"] = epochs
     result = register(scans, load_config("default", overrides=overrides))
     return {"trajectory": trajectory, "seed": seed, "threads": threads, "num_poses": scans.num_scans,
-            "ate": float(evaluate_poses(scans, result.poses)["ate"]), "runtime_s": float(result.runtime_s)}
+            "ate": float(result.metrics["ate"]), "runtime_s": float(result.runtime_s)}
 
 
 def report(out: Path, results: dict[str, dict], quick: bool) -> Path:
