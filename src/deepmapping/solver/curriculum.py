@@ -385,6 +385,21 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
                             math.radians(wide_turn), wide_keep,
                             np.random.default_rng([trainer.cfg.seed, j, 1]),  # the rounds draw as without it
                             points=len(few[0]))
+    best = search_rounds(score, centres, keep, shift, turn, cfg, rng, model.scans.dtype)
+    if seeds is not None:  # the wide search's seeds, refined apart, replace the rounds' best if lower (prefer_wide)
+        far = refine(wide_score, seeds, wide_score(seeds), wide_refine, cfg.refine_steps, cfg.refine_lr,
+                     model.scans.dtype)
+        best = prefer_wide(best, far, score(np.stack([best, far])), cfg.wide_margin, cfg.wide_heading_only)
+    set_placement(model, range(j, model.scans.shape[0]), best)  # unplaced scans wait there too
+
+
+def search_rounds(score: Callable, centres: np.ndarray, keep: np.ndarray, shift: float, turn: float, cfg,
+                  rng: np.random.Generator, dtype) -> np.ndarray:
+    """The rounds of ``place_new_scan``: hypotheses around ``centres`` (H, 3) shifted by up to ``shift``
+    and turned by up to ``turn`` (not those where ``keep`` is False), ``cfg.rounds`` rounds each
+    around the best so far with half the spread; then the ``refine_top`` lowest refined
+    (``refine``). Returns the lowest-``score`` pose (3,)."""
+    h = len(centres)
     best, best_loss = None, math.inf
     seen_c, seen_l = [], []
     for _ in range(cfg.rounds):
@@ -404,12 +419,8 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
         shift, turn = shift / 2, turn / 2
     if cfg.refine_top > 0:
         best = refine(score, np.concatenate(seen_c), torch.cat(seen_l), cfg.refine_top, cfg.refine_steps,
-                      cfg.refine_lr, model.scans.dtype)
-    if seeds is not None:  # the wide search's seeds, refined apart, replace the rounds' best if lower (prefer_wide)
-        far = refine(wide_score, seeds, wide_score(seeds), wide_refine, cfg.refine_steps, cfg.refine_lr,
-                     model.scans.dtype)
-        best = prefer_wide(best, far, score(np.stack([best, far])), cfg.wide_margin, cfg.wide_heading_only)
-    set_placement(model, range(j, model.scans.shape[0]), best)  # unplaced scans wait there too
+                      cfg.refine_lr, dtype)
+    return best
 
 
 def prefer_wide(best: np.ndarray, far: np.ndarray, losses: torch.Tensor, margin: float,
