@@ -67,6 +67,26 @@ def test_chamfer_distance_values_and_masks():
     assert xg.grad.abs().sum() > 0 and xg.grad[0, 2].abs().sum() == 0
 
 
+def test_nearest_index_kdtree_matches_the_distance_matrix(monkeypatch):
+    # 3D-sized clouds take the k-d tree: the same neighbours as the full matrix, invalid targets
+    # never chosen; a pair with no valid target and a NaN query do not raise
+    gen = torch.Generator().manual_seed(0)
+    q, t = torch.rand(3, 300, 3, generator=gen), torch.rand(3, 1000, 3, generator=gen)
+    tv = torch.rand(3, 1000, generator=gen) > 0.3
+    tv[2] = False
+    assert q.shape[1] * t.shape[1] >= loss.KDTREE_MIN_PAIRS
+    tree = loss.nearest_index(q, t, tv)
+    monkeypatch.setattr(loss, "KDTREE_MIN_PAIRS", 10**12)
+    matrix = loss.nearest_index(q, t, tv)
+    assert tree.shape == (3, 300) and tree.dtype == torch.int64
+    assert torch.equal(tree[:2], matrix[:2]) and bool(tv[torch.arange(2)[:, None], tree[:2]].all())
+    monkeypatch.setattr(loss, "KDTREE_MIN_PAIRS", 1)
+    q[0, 0], t[1, :5] = float("nan"), float("inf")
+    index = loss.nearest_index(q, t, tv)
+    assert int(index.max()) < 1000 and int(index[1].min()) >= 5
+    assert torch.isnan(loss.nearest_distance(q, torch.ones(3, 300, dtype=torch.bool), t, tv)[0])
+
+
 def test_batches_partition_scans_and_cover_every_neighbour_pair():
     k, pairs = 100, set()
     for epoch in range(30):

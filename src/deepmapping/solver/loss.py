@@ -2,8 +2,15 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
+from scipy.spatial import cKDTree
+
+# queries x targets per pair from which the nearest neighbours come from a k-d tree (SciPy) instead
+# of the full distance matrix: 3D scans (256 x 4800 on 80x60 depth images: 10x faster); the 2D
+# sizes (256 x 256 beams, 361 x 361 on CARMEN logs) keep the matrix, so their runs are unchanged
+KDTREE_MIN_PAIRS = 1 << 18
 
 
 def masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -28,12 +35,30 @@ def nearest_distance(q: torch.Tensor, qv: torch.Tensor, t: torch.Tensor, tv: tor
     The neighbour is searched without gradient and the distance to it re-evaluated with
     gradient (same value and gradient as the minimum, 5x faster).
     """
-    with torch.no_grad():
-        d = torch.cdist(q, t).masked_fill(~tv[:, None, :], float("inf"))
-        nn_idx = d.argmin(dim=2)
+    nn_idx = nearest_index(q, t, tv)
     matched = t.gather(1, nn_idx[..., None].expand(-1, -1, t.shape[2]))
     dist = ((q - matched).pow(2).sum(-1) + 1e-12).sqrt()
     return (dist * qv).sum(1) / qv.sum(1).clamp(min=1)
+
+
+def nearest_index(q: torch.Tensor, t: torch.Tensor, tv: torch.Tensor) -> torch.Tensor:
+    """Index (P, n) of the nearest valid point of t (P, m, D) to each query of q (P, n, D), no gradient.
+
+    On the CPU and from ``KDTREE_MIN_PAIRS`` distances a pair on, a k-d tree of each target's valid
+    points; else the full distance matrix. Both give the exact nearest neighbour (up to rounding
+    on near ties).
+    """
+    with torch.no_grad():
+        if q.device.type != "cpu" or q.shape[1] * t.shape[1] < KDTREE_MIN_PAIRS:
+            return torch.cdist(q, t).masked_fill(~tv[:, None, :], float("inf")).argmin(dim=2)
+        qn, tn, tvn = q.detach().numpy(), t.detach().numpy(), tv.numpy()
+        index = np.zeros(q.shape[:2], dtype=np.int64)
+        for p in range(q.shape[0]):  # non-finite points (a diverged step) get any index: their distance stays NaN
+            keep = np.flatnonzero(tvn[p] & np.isfinite(tn[p]).all(1))
+            if keep.size:  # no valid target: any index (the pair's term is dropped by chamfer's ``has``)
+                queries = np.where(np.isfinite(qn[p]), qn[p], 0.0)
+                index[p] = keep[cKDTree(tn[p, keep]).query(queries, k=1)[1]]
+        return torch.from_numpy(index)
 
 
 def chamfer(x: torch.Tensor, xv: torch.Tensor, y: torch.Tensor, yv: torch.Tensor,
