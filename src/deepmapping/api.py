@@ -36,7 +36,8 @@ class Result:
     metrics: dict | None = None
     # per-log lists (iteration, epoch, time_s, loss, bce, chamfer, ate) and "rollbacks": one dict
     # per NaN/inf step that training rolled back from (epoch, step, what, lr_scale after it);
-    # "stop_reason": why training ended before optim.epochs ("" = it ran them all)
+    # "stop_reason": why training ended before optim.epochs ("" = it ran them all); "reviewed": the
+    # scans the cold-start curriculum's review placed again
     history: dict = field(default_factory=dict)
     occupancy: Callable[[np.ndarray], np.ndarray] | None = None  # M-Net: (M, D) -> p(occupied)
     # trained L-Net (DeepMapping only): (points (M, N, D), valid (M, N), init=None) -> poses of new scans
@@ -200,7 +201,7 @@ def _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_place=N
     result.map_resolution = map_resolution
     result.timings = {"curriculum_s": trainer.curriculum_s, "training_s": training_s - trainer.curriculum_s}
     result.history = dict(trainer.state.history, rollbacks=trainer.state.rollbacks,
-                          stop_reason=trainer.state.stop_reason)
+                          stop_reason=trainer.state.stop_reason, reviewed=trainer.state.reviewed)
     if trainer.use_curriculum:
         result.placements = frame.from_norm(model.init_poses.cpu().numpy().astype(np.float64))
     result.occupancy = _occupancy_fn(model, frame, device)

@@ -36,6 +36,7 @@ def capture(trainer) -> dict:
         "elapsed_s": st.elapsed_s,
         "placed": st.placed,
         "curriculum_steps": st.curriculum_steps,
+        "reviewed": list(st.reviewed),
         "history": copy.deepcopy(st.history),
         "lr_scale": st.lr_scale,
         "rollbacks": copy.deepcopy(st.rollbacks),
@@ -72,6 +73,7 @@ def restore(trainer, data: dict) -> None:
     st.epoch, st.step, st.elapsed_s = data["epoch"], data["step"], data["elapsed_s"]
     st.history = copy.deepcopy(data["history"])
     st.placed, st.curriculum_steps = data.get("placed", 0), data.get("curriculum_steps", 0)
+    st.reviewed = list(data.get("reviewed", []))
     st.lr_scale, st.rollbacks = data.get("lr_scale", 1.0), copy.deepcopy(data.get("rollbacks", []))
     ref = data.get("early_stop_ref")
     st.early_stop_ref = None if ref is None else ref.copy()

@@ -504,6 +504,7 @@ def run(trainer: Trainer, checkpoint_path=None, on_log: Callable | None = None,
         if n < k:  # a checkpoint says "all placed" only once the placements are handed over
             st.placed = n
             trainer.boundary(checkpoint_path)
+    st.reviewed = review_placements(trainer)
     hand_over(trainer)
     st.placed = k
     trainer.boundary(checkpoint_path, force=True)
@@ -524,6 +525,65 @@ def _stage(trainer: Trainer, start: int) -> tuple[int, np.ndarray]:
         sums += trainer.step(stage_batch(n, cfg, rng), lr=cfg.lr)
     set_placement(model, range(n, k), placement(model, n - 1))  # unplaced scans wait at the newest
     return n, sums
+
+
+@torch.no_grad()
+def review_placements(trainer: Trainer) -> list[int]:
+    """Once every scan is placed: a scan that sits apart from both temporal neighbours while they
+    agree with each other (the smaller of its Chamfer distances to them over ``review_ratio`` x
+    theirs to each other; the ``review_max`` highest ratios, each checked again just before, as
+    moving one changes its neighbours') is placed again by the rounds of ``place_new_scan`` around
+    where it is and between the neighbours, ranked by the same loss with the Chamfer term to both
+    neighbours. A new placement is taken only if its loss is lower by more than ``review_margin`` x
+    the current one. Returns the scans moved."""
+    cfg, model = trainer.cfg.curriculum, trainer.model
+    k = model.scans.shape[0]
+    if cfg.review_ratio <= 0 or k < 3:
+        return []
+    p = placements(model, k)
+    pts = [selection_points(model, trainer.valid, i, cfg.select_points) for i in range(k)]
+    glob = transform(candidate_poses(model, p), torch.stack([x for x, _ in pts]))
+    valid = torch.stack([v for _, v in pts])
+
+    def ratio(i: torch.Tensor) -> torch.Tensor:  # scans i (1..k-2)
+        near = torch.minimum(chamfer(glob[i - 1], valid[i - 1], glob[i], valid[i]),
+                             chamfer(glob[i], valid[i], glob[i + 1], valid[i + 1]))
+        return near / chamfer(glob[i - 1], valid[i - 1], glob[i + 1], valid[i + 1]).clamp(min=1e-12)
+
+    inner = torch.arange(1, k - 1, device=glob.device)
+    order = inner[torch.argsort(ratio(inner), descending=True)[: cfg.review_max]].tolist()
+    rng = np.random.default_rng([trainer.cfg.seed, k, 2])
+    h, half = cfg.hypotheses, (cfg.hypotheses + 1) // 2
+    keep = np.ones(h, bool)
+    keep[[0, half % h]] = False
+    moved = []
+    for i in order:
+        if float(ratio(torch.tensor([i], device=glob.device))[0]) <= cfg.review_ratio:
+            continue
+        median_range = float(pts[i][0][pts[i][1]].norm(dim=1).median())
+        if cfg.select_truncate > 0:
+            ch_weight, truncate = cfg.select_chamfer_weight, cfg.select_truncate * median_range
+        else:
+            ch_weight, truncate = trainer.cfg.loss.chamfer_weight, None
+
+        def score(c, i=i, truncate=truncate, ch_weight=ch_weight) -> torch.Tensor:
+            cams = candidate_poses(model, c)
+            before = candidate_losses(model, pts[i], i, cams, (glob[i - 1], valid[i - 1]), ch_weight,
+                                      cfg.select_bce_weight, truncate=truncate)
+            return before + candidate_losses(model, pts[i], i, cams, (glob[i + 1], valid[i + 1]), ch_weight, 0.0,
+                                             truncate=truncate)
+
+        between = se2.compose(p[i - 1], se2.relative(p[i - 1], p[i + 1]) / 2)
+        centres = np.where(np.arange(h)[:, None] < half, p[i], between)
+        best = search_rounds(score, centres, keep, cfg.max_shift * median_range, math.radians(cfg.max_turn_deg),
+                             cfg, rng, model.scans.dtype)
+        now, new = score(np.stack([p[i], best])).tolist()
+        if new < now - cfg.review_margin * abs(now):
+            set_placement(model, range(i, i + 1), best)
+            p[i] = best
+            glob[i] = transform(candidate_poses(model, best[None]), pts[i][0][None])[0]
+            moved.append(i)
+    return moved
 
 
 def hand_over(trainer: Trainer) -> None:

@@ -40,6 +40,7 @@ class TrainState:
     elapsed_s: float = 0.0
     placed: int = 0  # cold-start curriculum: scans placed so far
     curriculum_steps: int = 0  # steps taken by the curriculum (before the learning-rate schedule)
+    reviewed: list = field(default_factory=list)  # cold-start curriculum: scans placed again by its review
     history: dict = field(default_factory=lambda: {k: [] for k in ckpt.HISTORY_KEYS})
     lr_scale: float = 1.0  # x every learning rate: ROLLBACK_LR_FACTOR per rollback
     rollbacks: list = field(default_factory=list)  # one dict per rollback (epoch, step, what, lr_scale)
