@@ -206,6 +206,9 @@ def test_register_warm_start_none_is_the_cold_profile_with_its_curriculum(runs):
     assert (history["epoch"] == 0).sum() >= 2  # the curriculum's logs come before the first epoch
     assert np.all(np.diff(history["iteration"]) > 0)
     assert np.isfinite(json.loads((out / "metrics.json").read_text())["ate"])
+    reviewed = json.loads((out / "run.json").read_text())["reviewed"]  # the scans the review moved
+    assert isinstance(reviewed, list) and all(0 < i < NUM_POSES - 1 for i in reviewed)
+    assert ("the review of the placements placed" in res.stdout) == bool(reviewed)
 
 
 def test_register_no_plots_skips_pictures(runs):

@@ -153,6 +153,10 @@ def register(
         print_metrics(console, {result.method: result.metrics})
     if result.history.get("rollbacks"):
         typer.echo(register_cmd.rollback_note(result.history["rollbacks"], out))
+    if result.history.get("reviewed"):
+        moved = result.history["reviewed"]
+        typer.echo(f"cold start: the review of the placements placed {len(moved)} scan(s) again "
+                   f"({', '.join(map(str, sorted(moved)))})")
     if result.history.get("stop_reason"):
         epochs = (result.history.get("epoch") or [0])[-1]
         typer.echo(f"training stopped after {epochs:g} of {result.config.optim.epochs} epochs: "

@@ -50,7 +50,8 @@ def write_run(out: Path, scans: ScanSet, result: Result, data_info: dict, plots:
                                   "num_scans": scans.num_scans, "unit": scans.unit,
                                   "unit_scale": scans.unit_scale, **data_info,
                                   "rollbacks": result.history.get("rollbacks", []),
-                                  "stop_reason": result.history.get("stop_reason", ""), **more})
+                                  "stop_reason": result.history.get("stop_reason", ""),
+                                  "reviewed": result.history.get("reviewed", []), **more})
     if plots:
         extras.write_pictures(out, scans, result)
         _write_curves(out, scans, result)

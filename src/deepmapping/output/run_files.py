@@ -14,8 +14,8 @@ def write_config(out: Path, result_config) -> None:
 
 
 def write_history_csv(path: Path, history: dict) -> None:
-    """One row per log; the rollbacks (events, not a column) are in run.json."""
-    keys = [k for k in history if isinstance(history[k], list) and k != "rollbacks"]
+    """One row per log; the rollbacks and the scans the review moved (events, not columns) are in run.json."""
+    keys = [k for k in history if isinstance(history[k], list) and k not in ("rollbacks", "reviewed")]
     rows = [",".join(keys)]
     for vals in zip(*(history[k] for k in keys)):
         rows.append(",".join("" if v is None else repr(v) for v in vals))
