@@ -27,7 +27,10 @@ from deepmapping.config import load_config
 
 _SCRIPT = Path(sys.executable).parent / "deepmapping"
 DM = str(_SCRIPT) if _SCRIPT.exists() else shutil.which("deepmapping")
-ENV = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONUNBUFFERED="1",
+# the runs killed in a subprocess take this process's thread count (conftest: 1, or
+# DEEPMAPPING_TEST_THREADS), so that their resume here and the uninterrupted run here match bit for bit
+THREADS = str(torch.get_num_threads())
+ENV = dict(os.environ, OMP_NUM_THREADS=THREADS, MKL_NUM_THREADS=THREADS, PYTHONUNBUFFERED="1",
            PYTHONDONTWRITEBYTECODE="1")
 needs_script = pytest.mark.skipif(DM is None, reason="the `deepmapping` console script is not installed")
 
