@@ -201,10 +201,10 @@ class CurriculumConfig(_Section):
     # 2D, where the free-space check runs: + turn_prior x (1 - cos(turn from the predecessor)) / 2, so
     # a corridor scan turned 180 deg onto its predecessor does not outrank the truth (0: off)
     turn_prior: float = Field(0.3, ge=0)
-    # once every scan is placed, a placed scan far from both temporal neighbours (its Chamfer
-    # distances to them, summed, over review_ratio x twice theirs to each other) is placed again by the
-    # rounds, around where it is and between the neighbours; the new place is taken if its loss (with
-    # the Chamfer term to both) is lower by more than review_margin x the current one; at most
+    # once every scan is placed, a placed scan far from both temporal neighbours while they agree (the
+    # smaller of its Chamfer distances to them over review_ratio x theirs to each other) is placed again
+    # by the rounds, around where it is and between the neighbours; the new place is taken if its loss
+    # (with the Chamfer term to both) is lower by more than review_margin x the current one; at most
     # review_max scans, the highest ratios first (review_ratio 0: off)
     review_ratio: float = Field(1.5, ge=0)
     review_max: int = Field(16, ge=0)

@@ -329,6 +329,25 @@ def free_space_check(trainer: Trainer, j: int, prev: np.ndarray, prev_glob: tupl
     return check
 
 
+def halves(h: int) -> tuple[int, int, np.ndarray]:
+    """``h`` hypotheses in two halves around two centres: (h, the first half's size, a mask that
+    is False at each half's first hypothesis, left at its centre: neither turned nor shifted)."""
+    half = (h + 1) // 2
+    keep = np.ones(h, bool)
+    keep[[0, half % h]] = False
+    return h, half, keep
+
+
+def ranking_scale(trainer: Trainer, pts: tuple) -> tuple[float, float, float | None]:
+    """For ranking a scan's hypotheses (``pts``: its points and validity): its median range, the
+    Chamfer term's weight and its cap (``select_truncate`` x the median range; None: uncapped)."""
+    cfg = trainer.cfg.curriculum
+    median_range = float(pts[0][pts[1]].norm(dim=1).median())
+    if cfg.select_truncate > 0:
+        return median_range, cfg.select_chamfer_weight, cfg.select_truncate * median_range
+    return median_range, trainer.cfg.loss.chamfer_weight, None
+
+
 @torch.no_grad()
 def place_new_scan(trainer: Trainer, j: int) -> None:
     """Initial placement of scan j: the lowest-loss of several random hypotheses.
@@ -345,19 +364,13 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
     prev = placement(model, j - 1)
     motion = last_motion(model, j)
     rng = np.random.default_rng([trainer.cfg.seed, j])
-    h, half = cfg.hypotheses, (cfg.hypotheses + 1) // 2
+    h, half, keep = halves(cfg.hypotheses)
     centres = np.where(np.arange(h)[:, None] < half, se2.compose(prev, motion), prev)
-    keep = np.ones(h, bool)
-    keep[[0, half % h]] = False  # the two plain centres
     pts = selection_points(model, trainer.valid, j, cfg.select_points)
     prev_pts, prev_valid = selection_points(model, trainer.valid, j - 1, cfg.select_points)
     prev_glob = (transform(candidate_poses(model, prev[None]), prev_pts[None])[0], prev_valid)
-    median_range = float(pts[0][pts[1]].norm(dim=1).median())
+    median_range, ch_weight, truncate = ranking_scale(trainer, pts)
     shift = cfg.max_shift * median_range
-    if cfg.select_truncate > 0:
-        ch_weight, truncate = cfg.select_chamfer_weight, cfg.select_truncate * median_range
-    else:
-        ch_weight, truncate = trainer.cfg.loss.chamfer_weight, None
 
     wide, check_free = triggered(model, j, cfg, median_range)  # slow sequences skip both
     free_check = free_space_check(trainer, j, prev, prev_glob, median_range) if check_free else None
@@ -553,18 +566,12 @@ def review_placements(trainer: Trainer) -> list[int]:
     inner = torch.arange(1, k - 1, device=glob.device)
     order = inner[torch.argsort(ratio(inner), descending=True)[: cfg.review_max]].tolist()
     rng = np.random.default_rng([trainer.cfg.seed, k, 2])
-    h, half = cfg.hypotheses, (cfg.hypotheses + 1) // 2
-    keep = np.ones(h, bool)
-    keep[[0, half % h]] = False
+    h, half, keep = halves(cfg.hypotheses)
     moved = []
     for i in order:
         if float(ratio(torch.tensor([i], device=glob.device))[0]) <= cfg.review_ratio:
             continue
-        median_range = float(pts[i][0][pts[i][1]].norm(dim=1).median())
-        if cfg.select_truncate > 0:
-            ch_weight, truncate = cfg.select_chamfer_weight, cfg.select_truncate * median_range
-        else:
-            ch_weight, truncate = trainer.cfg.loss.chamfer_weight, None
+        median_range, ch_weight, truncate = ranking_scale(trainer, pts[i])
 
         def score(c, i=i, truncate=truncate, ch_weight=ch_weight) -> torch.Tensor:
             cams = candidate_poses(model, c)
