@@ -64,6 +64,33 @@ def test_read_flaser_plain_and_packed(tmp_path, name):
     assert detect_format(tmp_path / name) == "carmen"
 
 
+def test_flaser_no_return_code_found_in_the_log(tmp_path):
+    """A FLASER log whose largest reading repeats (intel writes 81.83 m for no return): those
+    readings are no return too; a log without such a repeated top value keeps every reading."""
+    rng = np.random.default_rng(0)
+    lines = []
+    for k in range(20):
+        ranges = rng.uniform(0.5, 6.0, 30)
+        ranges[rng.random(30) < 0.1] = 81.83
+        ranges[0] = 81.83
+        lines.append(_flaser(ranges, (0.1 * k, 0.0, 0.0), f"{100 + k}.000000"))
+    log = read_carmen(_write(tmp_path / "code.clf", lines))
+    assert log.max_range == pytest.approx(81.83)
+    assert not log.valid()[log.ranges > 81].any() and log.valid()[log.ranges < 7].all()
+    assert np.abs(log.points()).max() < 7
+    rare = [_flaser([1.0 + 0.01 * k, 2.0, 30.0 + k], (0, 0, 0), f"{100 + k}.000000") for k in range(20)]
+    assert read_carmen(_write(tmp_path / "rare.clf", rare)).valid().all()  # the top value once: a reading
+    flat = [_flaser([2.0] * 5, (0, 0, 0), f"{100 + k}.000000") for k in range(20)]
+    assert read_carmen(_write(tmp_path / "flat.clf", flat)).valid().all()  # every reading alike: readings
+
+
+def test_intel_excerpt_no_return_readings_masked():
+    log = read_carmen(CARMEN / "intel.clf.gz")
+    far = log.ranges > 80
+    assert far.sum() > 100 and not log.valid()[far].any()  # 81.83 m: the intel log's no return
+    assert np.hypot(*log.points().transpose(2, 0, 1)).max() < 60
+
+
 def test_read_robotlaser_with_interleaved_layouts(tmp_path):
     def line(start, n, t):
         ranges = " ".join(["2.00"] * n)

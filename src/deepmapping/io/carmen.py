@@ -11,7 +11,10 @@ Message layouts (as in the Radish / Freiburg benchmark logs, checked on ``../sha
 
 The pose of a scan line is the laser's pose in the odometry frame (or the corrected pose in a
 ``*-corrected`` log): it is the warm start. A range at the sensor's maximum (or beyond, or <= 0)
-is no return. Malformed lines raise InputError naming the file and the line.
+is no return. FLASER has no maximum field: 81.9 m (the SICK's no-return value in most Freiburg
+logs), or lower where the log's largest reading repeats often (``saturation_range``: the intel log
+writes 81.83 m for no return, 2.8 % of its readings). Malformed lines raise InputError naming the
+file and the line.
 """
 
 from __future__ import annotations
@@ -30,11 +33,13 @@ from deepmapping.data import FullSequence, ScanSet
 from deepmapping.errors import ConfigError, InputError
 from deepmapping.sequence import select_keyframes
 
-__all__ = ["CarmenLog", "read_carmen", "match_scans", "open_text", "is_carmen_file", "CARMEN_SUFFIXES", "FLASER_MAX_RANGE"]
+__all__ = ["CarmenLog", "read_carmen", "match_scans", "open_text", "is_carmen_file", "CARMEN_SUFFIXES", "FLASER_MAX_RANGE",
+           "saturation_range"]
 
 CARMEN_SUFFIXES = (".clf", ".log")
 FLASER_MAX_RANGE = 81.9  # the SICK's no-return value in the Freiburg logs (FLASER has no max field)
 MAX_RANGE_TOL = 1e-3
+SATURATION_SHARE = 1e-3  # the largest reading is a no-return code when this share of readings (and 10) has it
 
 
 @dataclass
@@ -171,12 +176,32 @@ def read_carmen(path: str | os.PathLike, message: str | None = None) -> CarmenLo
     for i, (r, (n, start, fov, _), *_rest) in enumerate(rows):
         ranges[i, :n] = r
         angles[i] = start + fov * np.arange(width) / max(n - 1, 1)
+    max_range = np.array([r[1][3] for r in rows], dtype=np.float64)
+    if message == "FLASER":
+        max_range = np.minimum(max_range, saturation_range(ranges))
     return CarmenLog(
         path=str(path), message=message, ranges=ranges, angles=angles,
         poses=np.array([r[2] for r in rows]), odometry=np.array([r[3] for r in rows]),
         timestamps=np.array([r[4] for r in rows]), stamps=[r[5] for r in rows],
-        lines=np.array([r[6] for r in rows]), max_range=np.array([r[1][3] for r in rows], dtype=np.float64),
+        lines=np.array([r[6] for r in rows]), max_range=max_range,
     )
+
+
+def saturation_range(ranges: np.ndarray) -> float:
+    """The no-return value of a log without a maximum field: its largest finite reading if at least
+    ``SATURATION_SHARE`` of the readings (and 10) have that very value and it is over twice the
+    median of the others (a sensor's code for "nothing hit", e.g. 81.83 m in the intel log:
+    measured ranges are not that often exactly the largest); inf otherwise (then only the fixed
+    ``FLASER_MAX_RANGE`` applies)."""
+    r = ranges[np.isfinite(ranges) & (ranges > 0)]
+    if r.size == 0:
+        return np.inf
+    top = float(r.max())
+    at_top = r >= top - MAX_RANGE_TOL / 2
+    hits = int(np.count_nonzero(at_top))
+    if hits < max(10, SATURATION_SHARE * ranges.size) or hits == r.size:
+        return np.inf
+    return top if top > 2 * float(np.median(r[~at_top])) else np.inf
 
 
 def match_scans(log: CarmenLog, raw: CarmenLog, decimals: int = 2) -> np.ndarray:
