@@ -12,7 +12,7 @@ from typing import Callable
 
 import numpy as np
 
-from deepmapping.config import Config, load_config, migrate_settings, resolve_profile
+from deepmapping.config import Config, load_config, migrate_settings, resolve_profile, validate_config
 from deepmapping.data import ScanSet, identity_poses
 from deepmapping.errors import ConfigError, InputError
 from deepmapping.evaluation import ate, evaluate
@@ -147,9 +147,17 @@ def _load_checkpoint(checkpoint, cfg: Config) -> dict | None:
         data = ckpt.load(checkpoint)
     except Exception as exc:  # corrupt file: a torch/pickle error of any kind
         raise InputError(f"{checkpoint}: cannot read checkpoint ({type(exc).__name__})") from None
-    if migrate_settings(data["config"]) != cfg.model_dump():  # a checkpoint of an older version: its names moved
+    # a checkpoint of an older version: its names moved (migrate_settings), settings added since take their defaults
+    if _saved_settings(data["config"]) != cfg.model_dump():
         raise ConfigError(f"{checkpoint}: was written with other settings; resume with the run's config")
     return data
+
+
+def _saved_settings(saved: dict) -> dict | None:
+    try:
+        return validate_config(migrate_settings(saved)).model_dump()
+    except ConfigError:
+        return None
 
 
 def resolve_device(name: str) -> str:
@@ -163,15 +171,49 @@ def resolve_device(name: str) -> str:
 
 
 def _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_place=None) -> Result:
+    """DeepMapping (or direct optimization) from ``init``; with ``workers`` > 1 (or under torchrun)
+    as worker 0 of several that train the one map (solver.distributed)."""
+    from deepmapping.solver import distributed
+
+    def start_others(port: int, addr: str) -> list:
+        import torch.multiprocessing as mp
+
+        ctx = mp.get_context("spawn")
+        procs = [ctx.Process(target=_worker, args=(r, cfg, scans, init, saved, port, addr)) for r in range(1, cfg.workers)]
+        for p in procs:
+            p.start()
+        return procs
+
+    with distributed.group(cfg.workers, resolve_device(cfg.device), start_others):
+        return _train_here(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_place)
+
+
+def _worker(rank: int, cfg: Config, scans: ScanSet, init, saved, port: int, addr: str) -> None:
+    """A started worker (rank >= 1) of ``_train``: the same training, no output."""
+    from deepmapping.solver import distributed
+
+    distributed.join_group(rank, cfg.workers, port, addr, resolve_device(cfg.device))
+    try:
+        _train_here(scans, cfg, init, time.perf_counter(), None, saved, None, None)
+    finally:
+        distributed.leave()
+
+
+def _train_here(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_place=None) -> Result:
+    import os
+
     import torch
 
     from deepmapping.solver import checkpoint as ckpt
+    from deepmapping.solver import distributed
     from deepmapping.solver.model import DeepMappingModel
     from deepmapping.solver.trainer import Trainer
 
-    device = resolve_device(cfg.device)
+    device = distributed.local_device(resolve_device(cfg.device))
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
+    elif distributed.active():  # the machine's cores shared by its workers
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // distributed.local_world()))
     torch.manual_seed(cfg.seed)
     frame = Frame.from_scans(scans.points, scans.valid, init)
     pts = torch.as_tensor(scans.points / frame.scale, dtype=torch.float32, device=device)
@@ -181,6 +223,7 @@ def _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_place=N
                              torch.as_tensor(frame.to_norm(init), dtype=torch.float32, device=device),
                              valid=valid, grid_shape=scans.grid_shape, pose_dof=scans.pose_dof)
     model.to(device)
+    distributed.broadcast_(model.init_poses)  # torchrun: each machine computed the warm start; worker 0's counts
     if cfg.method == "direct":
         model.make_direct()
 
@@ -193,6 +236,8 @@ def _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_place=N
     trainer.extra = {"init_poses_input": init.tolist(), "frame": frame.to_dict(), "map_resolution": map_resolution}
     if saved is not None:
         ckpt.restore(trainer, saved)
+        if distributed.rank() > 0:  # the checkpoint holds worker 0's generator
+            trainer.gen.manual_seed(cfg.seed + distributed.rank() * distributed.RANK_SEED_STRIDE + trainer.state.step)
     t_train = time.perf_counter()
     trainer.run(checkpoint, on_log, on_epoch, on_place)
     training_s = time.perf_counter() - t_train

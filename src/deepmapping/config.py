@@ -270,6 +270,7 @@ class Config(_Section):
     seed: int = Field(0, ge=0, le=2**64 - 1)  # numpy and torch generators take 0 ... 2^64 - 1
     device: Literal["auto", "cpu", "cuda"] = "auto"
     threads: PosInt | None = None  # torch intra-op threads (None = torch default)
+    workers: PosInt = 1  # processes training the one map (torch.distributed; solver/distributed.py)
     lnet: LNetConfig = Field(default_factory=LNetConfig)
     mnet: MNetConfig = Field(default_factory=MNetConfig)
     loss: LossConfig = Field(default_factory=LossConfig)

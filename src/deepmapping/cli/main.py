@@ -128,6 +128,8 @@ def register(
                                              "intrinsics.json, or tum | fr1 | fr2 | fr3 | 7scenes."),
     device: Optional[str] = typer.Option(None, help="auto | cpu | cuda."),
     seed: Optional[int] = typer.Option(None, help="Seed (fixes everything)."),
+    workers: Optional[int] = typer.Option(None, help="Processes that train the one map together (torch.distributed: "
+                                          "gloo on CPU, NCCL on GPUs; each takes a share of every epoch)."),
     resume: bool = typer.Option(False, help="Continue an interrupted run in --out from its checkpoint."),
     no_plots: bool = typer.Option(False, "--no-plots", help="Skip the PNG pictures."),
 ):
@@ -144,11 +146,13 @@ def register(
     else:
         sets = parse_sets(set)
         cfg = lambda is_3d: register_cmd.build_config(profile, config, method, epochs, warm_start, init,  # noqa: E731
-                                                      device, seed, sets, is_3d)
+                                                      device, seed, sets, is_3d, workers)
         cfg(False)  # a bad setting fails before any data is read
     out = out or default_run_dir(method)
     scans, result = register_cmd.run_register(data, out, cfg, format, gt, resume, plots=not no_plots,
                                               keyframes=keyframes, non_keyframes=non_keyframes, depth=depth)
+    if register_cmd.launched_worker():
+        return
     if result.metrics:
         print_metrics(console, {result.method: result.metrics})
     if result.history.get("rollbacks"):

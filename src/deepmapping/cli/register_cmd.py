@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 from deepmapping.api import register, resolve_device
@@ -17,7 +18,7 @@ from deepmapping.io.lock import folder_lock
 from deepmapping.output.run_dir import write_config, write_json, write_run
 
 
-def build_config(profile, config_file, method, epochs, warm_start, init, device, seed, sets, is_3d=False):
+def build_config(profile, config_file, method, epochs, warm_start, init, device, seed, sets, is_3d=False, workers=None):
     """The effective config; 3D data gets the 3D variant of the profile (default -> default-3d)."""
     profile = resolve_profile(profile, is_3d, cold=warm_start == "none" and init is None)
 
@@ -29,6 +30,8 @@ def build_config(profile, config_file, method, epochs, warm_start, init, device,
         overrides["device"] = device
     if seed is not None:
         overrides["seed"] = seed
+    if workers is not None:
+        overrides["workers"] = workers
     if init is not None:
         overrides["warm_start.method"], overrides["warm_start.path"] = "file", str(Path(init).resolve())
     elif warm_start is not None:
@@ -65,6 +68,8 @@ def run_register(data: Path, out: Path, cfg, fmt, gt, resume: bool, plots: bool 
     for note in scans.notes:
         console.print(f"note: {note}", highlight=False, soft_wrap=True)
     cfg = cfg(scans.is_3d) if callable(cfg) else cfg
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1:  # torchrun: the run says how many trained it
+        cfg = cfg.model_copy(update={"workers": int(os.environ["WORLD_SIZE"])})
     load_s = time.perf_counter() - t_load
 
     if cfg.method in ("deepmapping", "direct"):
@@ -73,6 +78,8 @@ def run_register(data: Path, out: Path, cfg, fmt, gt, resume: bool, plots: bool 
             "keyframes": keyframes, "non_keyframes": non_keyframes, "notes": scans.notes}
     if depth is not None and not depth.is_default():
         info["depth"] = depth.to_dict()
+    if launched_worker():  # torchrun: worker 0 writes the run; the others train with it
+        return scans, register(scans, cfg, checkpoint=out / "checkpoint.pt", resume=resume)
     with folder_lock(make_folder(out)):  # a second command on this folder refuses (FolderBusy)
         write_config(out, cfg)
         write_json(out / "run.json", {"method": cfg.method, "status": "running", **info})
@@ -92,6 +99,11 @@ def run_register(data: Path, out: Path, cfg, fmt, gt, resume: bool, plots: bool 
                           "peak_rss_mb": peak_rss_mb()}
         write_json(out / "run.json", json.loads((out / "run.json").read_text()) | {"timings": result.timings})
     return scans, result
+
+
+def launched_worker() -> bool:
+    """Whether a launcher (torchrun) started this process as a worker other than the first."""
+    return int(os.environ.get("WORLD_SIZE", "1")) > 1 and os.environ.get("RANK", "0") != "0"
 
 
 def peak_rss_mb() -> float:

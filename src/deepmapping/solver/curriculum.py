@@ -18,6 +18,7 @@ import torch
 
 from deepmapping.errors import ConfigError
 from deepmapping.geometry import se2
+from deepmapping.solver import distributed
 from deepmapping.solver.geometry import planar_matrix, transform, translation
 from deepmapping.solver.loss import chamfer
 
@@ -518,6 +519,7 @@ def run(trainer: Trainer, checkpoint_path=None, on_log: Callable | None = None,
             st.placed = n
             trainer.boundary(checkpoint_path)
     st.reviewed = review_placements(trainer)
+    distributed.broadcast_(model.direct_poses, model.init_poses)
     hand_over(trainer)
     st.placed = k
     trainer.boundary(checkpoint_path, force=True)
@@ -531,6 +533,7 @@ def _stage(trainer: Trainer, start: int) -> tuple[int, np.ndarray]:
     new = range(start, min(start + cfg.chunk, k))
     for j in new:
         place_new_scan(trainer, j)
+    distributed.broadcast_(model.direct_poses, model.init_poses)  # several workers: worker 0's placements
     n = new[-1] + 1
     rng = np.random.default_rng([trainer.cfg.seed, n])
     sums = np.zeros(3)

@@ -13,7 +13,7 @@ import torch
 from deepmapping.config import Config
 from deepmapping.errors import Interrupted, TrainingError
 from deepmapping.solver import checkpoint as ckpt
-from deepmapping.solver import curriculum
+from deepmapping.solver import curriculum, distributed
 from deepmapping.solver.geometry import transform
 from deepmapping.solver.loss import chamfer_loss, occupancy_bce
 from deepmapping.solver.model import DeepMappingModel
@@ -76,7 +76,9 @@ class Trainer:
         self.use_chamfer = ordered and cfg.loss.chamfer_weight > 0
         self.evaluate = evaluate
         self.device = valid.device
-        self.gen = torch.Generator(device=self.device).manual_seed(cfg.seed)
+        # each worker its own beam samples (worker 0, or one process: the seed itself)
+        self.gen = torch.Generator(device=self.device).manual_seed(cfg.seed + distributed.rank() * distributed.RANK_SEED_STRIDE)
+        self._step_loss: tuple[tuple, torch.nn.Module] | None = None  # (its parameters' ids, the loss module)
         self.use_curriculum = curriculum.enabled(cfg, model, ordered)
         self.reset_optimizer()
         k = valid.shape[0]
@@ -137,15 +139,29 @@ class Trainer:
         warmup = self.mnet_warmup_now()
         for g in self.opt.param_groups:
             g["lr"] = 0.0 if (warmup and g["name"] == "poses") else lr * g["lr_factor"]
-        total, bce, ch = self.loss(torch.as_tensor(idx, device=self.device))
+        # several workers: each takes a part of the batch, its loss weighted so that the mean over
+        # the workers is the batch's loss (and DistributedDataParallel averages the gradients)
+        mine, weight = distributed.share(idx)
+        total, bce, ch = (weight * x for x in self.loss_module()(torch.as_tensor(mine, device=self.device)))
         self.opt.zero_grad(set_to_none=True)
         total.backward()
         self.opt.step()
-        loss = total.item()
+        loss, bce, ch = distributed.mean(torch.stack([total, bce, ch]).detach()).tolist()
         if not math.isfinite(loss):  # the step is undone by the rollback (guarded) that follows
             raise NonFinite(f"loss is {loss}")
         self.state.step += 1
-        return loss, bce.item(), ch.item()
+        return loss, bce, ch
+
+    def loss_module(self) -> torch.nn.Module:
+        """``loss`` as a module over the model (idx -> (total, bce, chamfer)); with several workers
+        in DistributedDataParallel, built again when the parameters or their use change (placements,
+        hand-over, the end of the M-Net warm-up)."""
+        # the L-Net gets no gradient in the M-Net warm-up and while poses are optimized directly
+        unused = self.mnet_warmup_now() or self.model.direct_poses is not None
+        key = (unused, *(id(p) for g in self.model.param_groups() for p in g["params"]))
+        if self._step_loss is None or self._step_loss[0] != key:
+            self._step_loss = (key, distributed.wrap(_StepLoss(self.model, self.loss), self.device, unused=unused))
+        return self._step_loss[1]
 
     def _check_weights(self) -> None:
         """NonFinite when a weight or pose is NaN/inf: a finite loss with a NaN/inf gradient
@@ -171,6 +187,8 @@ class Trainer:
             self._write_good(path)
 
     def _write_good(self, path) -> None:
+        if not distributed.is_main():  # one file for the workers' one state
+            return
         self.state.elapsed_s = time.perf_counter() - self._t_start
         ckpt.write(path, dict(self._good, elapsed_s=self.state.elapsed_s))
         self._last_ckpt = time.perf_counter()
@@ -247,7 +265,7 @@ class Trainer:
         """Log when due; whether training ends here (last epoch, time budget, early stop)."""
         cfg, st = self.cfg.optim, self.state
         st.elapsed_s = time.perf_counter() - self._t_start
-        out_of_time = cfg.max_time_s is not None and st.elapsed_s >= cfg.max_time_s
+        out_of_time = distributed.any_true(cfg.max_time_s is not None and st.elapsed_s >= cfg.max_time_s, self.device)
         # since the M-Net warm-up, only as many as the stopping rule reads (bounded in every checkpoint)
         st.epoch_losses = [] if self._epoch_warmup else (st.epoch_losses + [float(mean[0])])[-2 * cfg.stop_window:]
         plateau = cfg.stop_min_improvement is not None and loss_plateau(
@@ -283,3 +301,14 @@ class Trainer:
         if on_log:
             on_log({k: h[k][-1] for k in ckpt.HISTORY_KEYS} | {"total_epochs": self.cfg.optim.epochs})
         return poses
+
+
+class _StepLoss(torch.nn.Module):
+    """The model with one step's loss as its forward (what DistributedDataParallel wraps)."""
+
+    def __init__(self, model: DeepMappingModel, loss: Callable):
+        super().__init__()
+        self.model, self._loss = model, loss
+
+    def forward(self, idx: torch.Tensor):
+        return self._loss(idx)

@@ -1,0 +1,168 @@
+"""One map trained by several processes (``workers`` > 1): torch.distributed data parallelism.
+
+Every worker holds the whole problem (scans, L-Net, M-Net) and takes its part of each batch
+(contiguous scans, its own beam and free-space samples); DistributedDataParallel averages the
+gradients, so every worker makes the same optimizer step and the weights stay equal: the same
+steps as one process, each spread over the workers. Gloo on CPU, NCCL on CUDA. The decisions that end or undo a step (the
+loss's finiteness, the stopping rule, the time budget) are taken on values reduced over the
+workers, so all of them take the same branch; placements (cold start) are broadcast from worker 0.
+
+``register`` with ``workers`` = N runs worker 0 in the calling process and starts N - 1 more
+(``spawn``); under ``torchrun`` (``WORLD_SIZE`` and ``RANK`` in the environment, any number of
+machines) the processes are already there and join the group from the environment. Only worker 0
+reports progress and writes checkpoints and results.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+from contextlib import contextmanager
+from datetime import timedelta
+from typing import Callable
+
+import numpy as np
+import torch
+import torch.distributed as dist
+
+RANK_SEED_STRIDE = 1_000_003  # worker r samples its beams from generator seed + r x this (r = 0: as one process)
+TIMEOUT = timedelta(minutes=10)  # a worker that does not reach a collective by then ends the run with an error
+
+
+def active() -> bool:
+    """Whether this process is one of several training one map."""
+    return dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1
+
+
+def world() -> int:
+    return dist.get_world_size() if active() else 1
+
+
+def rank() -> int:
+    return dist.get_rank() if active() else 0
+
+
+def is_main() -> bool:
+    return rank() == 0
+
+
+def local_world() -> int:
+    """How many of the workers run on this machine (torchrun's LOCAL_WORLD_SIZE; else all)."""
+    return int(os.environ.get("LOCAL_WORLD_SIZE", world()))
+
+
+def local_device(device: str) -> str:
+    """``device`` for this worker: with several workers on CUDA, one GPU each (LOCAL_RANK, or the rank)."""
+    if device != "cuda" or not active():
+        return device
+    index = int(os.environ.get("LOCAL_RANK", rank())) % max(torch.cuda.device_count(), 1)
+    torch.cuda.set_device(index)
+    return f"cuda:{index}"
+
+
+def mean(values: torch.Tensor) -> torch.Tensor:
+    """The mean of ``values`` over the workers (itself with one)."""
+    if not active():
+        return values
+    out = values.detach().clone()
+    dist.all_reduce(out)
+    return out / world()
+
+
+def share(idx: np.ndarray) -> tuple[np.ndarray, float]:
+    """This worker's part of a batch of scans ``idx`` (contiguous, as equal as can be) and the weight
+    of its loss: workers x its share of the batch, so that the workers' mean is the batch's mean. A
+    worker left without scans (a batch smaller than the workers) takes the whole batch at weight 0."""
+    if not active():
+        return idx, 1.0
+    mine = np.array_split(np.asarray(idx), world())[rank()]
+    if len(mine) == 0:
+        return idx, 0.0
+    return mine, world() * len(mine) / len(idx)
+
+
+def any_true(flag: bool, device="cpu") -> bool:
+    """True on every worker when ``flag`` is True on any."""
+    if not active():
+        return flag
+    t = torch.tensor([1.0 if flag else 0.0], device=device)
+    dist.all_reduce(t, op=dist.ReduceOp.MAX)
+    return bool(t.item() > 0)
+
+
+@torch.no_grad()
+def broadcast_(*tensors: torch.Tensor | None) -> None:
+    """Worker 0's values into every worker's ``tensors`` (in place)."""
+    if active():
+        for t in tensors:
+            if t is not None:
+                dist.broadcast(t.data, 0)
+
+
+def wrap(module: torch.nn.Module, device: torch.device | str, unused: bool = False):
+    """``module`` (whose forward returns the loss) in DistributedDataParallel when several workers
+    train; ``module`` itself otherwise. Buffers (the scans) are not broadcast: every worker loaded
+    them. ``unused``: some parameters get no gradient in these steps (the L-Net during the M-Net
+    warm-up)."""
+    if not active():
+        return module
+    import warnings
+
+    from torch.nn.parallel import DistributedDataParallel
+
+    ids = [torch.device(device).index or 0] if torch.device(device).type == "cuda" else None
+    with warnings.catch_warnings():  # newer torch renames broadcast_buffers; the old name works from 2.3 on
+        warnings.simplefilter("ignore", FutureWarning)
+        return DistributedDataParallel(module, device_ids=ids, broadcast_buffers=False, find_unused_parameters=unused)
+
+
+def backend(device: str) -> str:
+    return "nccl" if device == "cuda" else "gloo"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def from_environment() -> bool:
+    """Whether a launcher (torchrun) started this process as one of several workers."""
+    return int(os.environ.get("WORLD_SIZE", "1")) > 1 and "RANK" in os.environ
+
+
+@contextmanager
+def group(workers: int, device: str, start_others: Callable[[int, str], list] | None = None):
+    """A process group for the ``with`` block: from the environment (torchrun), or with this process
+    as worker 0 of ``workers`` on this machine, ``start_others(port, addr)`` starting the rest (it
+    returns their process handles, joined at the end). Nothing when one worker and no launcher."""
+    if active() or (workers <= 1 and not from_environment()):
+        yield
+        return
+    procs = []
+    if from_environment():
+        dist.init_process_group(backend(device), init_method="env://", timeout=TIMEOUT)
+    else:
+        addr, port = "127.0.0.1", free_port()
+        procs = start_others(port, addr) if start_others else []
+        dist.init_process_group(backend(device), init_method=f"tcp://{addr}:{port}", rank=0, world_size=workers,
+                                timeout=TIMEOUT)
+    try:
+        yield
+    finally:
+        leave()
+        for p in procs:
+            p.join()
+            if p.exitcode != 0:
+                raise RuntimeError(f"a training worker ended with exit code {p.exitcode}")
+
+
+def join_group(rank_: int, workers: int, port: int, addr: str, device: str) -> None:
+    """In a started worker: join worker 0's group."""
+    dist.init_process_group(backend(device), init_method=f"tcp://{addr}:{port}", rank=rank_, world_size=workers,
+                            timeout=TIMEOUT)
+
+
+def leave() -> None:
+    if dist.is_available() and dist.is_initialized():
+        dist.destroy_process_group()
