@@ -190,11 +190,15 @@ def _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_place=N
 
 def _worker(rank: int, cfg: Config, scans: ScanSet, init, saved, port: int, addr: str) -> None:
     """A started worker (rank >= 1) of ``_train``: the same training, no output."""
+    import sys
+
     from deepmapping.solver import distributed
 
     distributed.join_group(rank, cfg.workers, port, addr, resolve_device(cfg.device))
     try:
         _train_here(scans, cfg, init, time.perf_counter(), None, saved, None, None)
+    except (Exception, KeyboardInterrupt):  # worker 0 meets the same error and reports it
+        sys.exit(1)
     finally:
         distributed.leave()
 

@@ -25,6 +25,8 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
+from deepmapping.errors import TrainingError
+
 RANK_SEED_STRIDE = 1_000_003  # worker r samples its beams from generator seed + r x this (r = 0: as one process)
 TIMEOUT = timedelta(minutes=10)  # a worker that does not reach a collective by then ends the run with an error
 
@@ -147,14 +149,19 @@ def group(workers: int, device: str, start_others: Callable[[int, str], list] | 
         procs = start_others(port, addr) if start_others else []
         dist.init_process_group(backend(device), init_method=f"tcp://{addr}:{port}", rank=0, world_size=workers,
                                 timeout=TIMEOUT)
+    finished = False
     try:
         yield
-    finally:
+        finished = True
+    finally:  # an error or Ctrl-C here ends the started workers too (theirs is the same, or they wait)
         leave()
         for p in procs:
-            p.join()
-            if p.exitcode != 0:
-                raise RuntimeError(f"a training worker ended with exit code {p.exitcode}")
+            p.join(timeout=None if finished else 30)
+            if p.is_alive():
+                p.terminate()
+    failed = [p.exitcode for p in procs if p.exitcode]
+    if failed:
+        raise TrainingError(f"a training worker ended with exit code {failed[0]}")
 
 
 def join_group(rank_: int, workers: int, port: int, addr: str, device: str) -> None:
