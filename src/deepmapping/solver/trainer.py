@@ -78,7 +78,7 @@ class Trainer:
         self.device = valid.device
         # each worker its own beam samples (worker 0, or one process: the seed itself)
         self.gen = torch.Generator(device=self.device).manual_seed(cfg.seed + distributed.rank() * distributed.RANK_SEED_STRIDE)
-        self._step_loss: tuple[tuple, torch.nn.Module] | None = None  # (its parameters' ids, the loss module)
+        self._step_loss: tuple[tuple, torch.nn.Module] | None = None  # (what it was built for, the loss module)
         self.use_curriculum = curriculum.enabled(cfg, model, ordered)
         self.reset_optimizer()
         k = valid.shape[0]
