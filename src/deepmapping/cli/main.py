@@ -129,7 +129,7 @@ def register(
     device: Optional[str] = typer.Option(None, help="auto | cpu | cuda."),
     seed: Optional[int] = typer.Option(None, help="Seed (fixes everything)."),
     workers: Optional[int] = typer.Option(None, help="Processes that train the one map together (torch.distributed: "
-                                          "gloo on CPU, NCCL on GPUs; each takes a share of every epoch)."),
+                                          "gloo on CPU, NCCL on GPUs; each takes a part of every batch)."),
     resume: bool = typer.Option(False, help="Continue an interrupted run in --out from its checkpoint."),
     no_plots: bool = typer.Option(False, "--no-plots", help="Skip the PNG pictures."),
 ):

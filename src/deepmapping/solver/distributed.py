@@ -3,9 +3,10 @@
 Every worker holds the whole problem (scans, L-Net, M-Net) and takes its part of each batch
 (contiguous scans, its own beam and free-space samples); DistributedDataParallel averages the
 gradients, so every worker makes the same optimizer step and the weights stay equal: the same
-steps as one process, each spread over the workers. Gloo on CPU, NCCL on CUDA. The decisions that end or undo a step (the
-loss's finiteness, the stopping rule, the time budget) are taken on values reduced over the
-workers, so all of them take the same branch; placements (cold start) are broadcast from worker 0.
+steps as one process, each spread over the workers. Gloo on CPU, NCCL on CUDA. The decisions that
+end or undo a step (the loss's finiteness, the stopping rule, the time budget) are taken on values
+reduced over the workers, so all of them take the same branch; placements (cold start) and the
+warm start are broadcast from worker 0.
 
 ``register`` with ``workers`` = N runs worker 0 in the calling process and starts N - 1 more
 (``spawn``); under ``torchrun`` (``WORLD_SIZE`` and ``RANK`` in the environment, any number of
