@@ -90,14 +90,16 @@ KILL_RUNS = {
     # cold start: killed while the curriculum places the scans (or just after)
     "cold": ["--seed", "3", "--warm-start", "none", "--set", "optim.epochs=4", "--set", "optim.eval_every=2",
              "--set", "curriculum.steps=10", "--set", "curriculum.hypotheses=8", "--set", "curriculum.log_every=1"],
+    # two worker processes on one map (each worker's beam generator is in the checkpoint)
+    "workers": ["--seed", "3", "--workers", "2", "--set", "optim.epochs=25", "--set", "optim.eval_every=5"],
 }
 
 
 def _killed_mid_run(data: Path, out: Path, args: list[str]) -> dict:
-    """Start `register`, SIGKILL it once a checkpoint exists; the checkpoint it left."""
+    """Start `register`, SIGKILL it (and any worker it started) once a checkpoint exists; the checkpoint it left."""
     cmd = [DM, "register", str(data), "--out", str(out), "--no-plots", "--device", "cpu",
            "--set", "optim.checkpoint_every_s=0", *args]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=ENV)
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=ENV, start_new_session=True)
     try:
         deadline = time.monotonic() + 120
         while not (out / "checkpoint.pt").exists():
@@ -106,7 +108,7 @@ def _killed_mid_run(data: Path, out: Path, args: list[str]) -> dict:
             time.sleep(0.01)
         time.sleep(0.1)
         assert proc.poll() is None, "the run finished before it could be killed: make it longer"
-        proc.send_signal(signal.SIGKILL)
+        os.killpg(proc.pid, signal.SIGKILL)  # its own session: the process and its workers
         assert proc.wait(timeout=30) == -signal.SIGKILL
     finally:
         if proc.poll() is None:

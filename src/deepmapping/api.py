@@ -240,8 +240,6 @@ def _train_here(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_pl
     trainer.extra = {"init_poses_input": init.tolist(), "frame": frame.to_dict(), "map_resolution": map_resolution}
     if saved is not None:
         ckpt.restore(trainer, saved)
-        if distributed.rank() > 0:  # the checkpoint holds worker 0's generator
-            trainer.gen.manual_seed(cfg.seed + distributed.rank() * distributed.RANK_SEED_STRIDE + trainer.state.step)
     t_train = time.perf_counter()
     trainer.run(checkpoint, on_log, on_epoch, on_place)
     training_s = time.perf_counter() - t_train

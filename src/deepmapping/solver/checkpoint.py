@@ -15,6 +15,7 @@ from pathlib import Path
 import torch
 
 from deepmapping.io.atomic import atomic_write
+from deepmapping.solver import distributed
 
 HISTORY_KEYS = ("iteration", "epoch", "time_s", "loss", "bce", "chamfer", "ate")
 
@@ -31,6 +32,7 @@ def capture(trainer) -> dict:
         "direct": model.direct_poses is not None,
         "optimizer": copy.deepcopy(trainer.opt.state_dict()),
         "generator": trainer.gen.get_state(),
+        "generators": distributed.gather(trainer.gen.get_state()),  # several workers: each one's, by rank
         "epoch": st.epoch,
         "step": st.step,
         "elapsed_s": st.elapsed_s,
@@ -68,7 +70,11 @@ def restore(trainer, data: dict) -> None:
     model.load_state_dict(data["model"])
     # the optimizer adopts the given state tensors as they are: give it copies
     trainer.opt.load_state_dict(copy.deepcopy(data["optimizer"]))
-    trainer.gen.set_state(data["generator"])
+    gens = data.get("generators")
+    if gens is not None and len(gens) == distributed.world():
+        trainer.gen.set_state(gens[distributed.rank()])
+    else:
+        trainer.gen.set_state(data["generator"])
     st = trainer.state
     st.epoch, st.step, st.elapsed_s = data["epoch"], data["step"], data["elapsed_s"]
     st.history = copy.deepcopy(data["history"])

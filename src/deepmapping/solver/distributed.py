@@ -93,6 +93,15 @@ def any_true(flag: bool, device="cpu") -> bool:
     return bool(t.item() > 0)
 
 
+def gather(obj) -> list | None:
+    """Every worker's ``obj`` in rank order (on every worker); None with one process."""
+    if not active():
+        return None
+    out: list = [None] * world()
+    dist.all_gather_object(out, obj)
+    return out
+
+
 @torch.no_grad()
 def broadcast_(*tensors: torch.Tensor | None) -> None:
     """Worker 0's values into every worker's ``tensors`` (in place)."""
