@@ -1,7 +1,8 @@
 """One map trained by several processes (``workers`` > 1): torch.distributed data parallelism.
 
 Every worker holds the whole problem (scans, L-Net, M-Net) and takes its part of each batch
-(contiguous scans, its own beam and free-space samples); DistributedDataParallel averages the
+(contiguous scans, plus the neighbours its Chamfer pairs need; its own beam and free-space
+samples); DistributedDataParallel averages the
 gradients, so every worker makes the same optimizer step and the weights stay equal: the same
 steps as one process, each spread over the workers. Gloo on CPU, NCCL on CUDA. The decisions that
 end or undo a step (the loss's finiteness, the stopping rule, the time budget) are taken on values
@@ -72,16 +73,35 @@ def mean(values: torch.Tensor) -> torch.Tensor:
     return out / world()
 
 
-def share(idx: np.ndarray) -> tuple[np.ndarray, float]:
-    """This worker's part of a batch of scans ``idx`` (contiguous, as equal as can be) and the weight
-    of its loss: workers x its share of the batch, so that the workers' mean is the batch's mean. A
-    worker left without scans (a batch smaller than the workers) takes the whole batch at weight 0."""
+def _pairs(idx: np.ndarray, window: int) -> np.ndarray:
+    """(a, b) positions of the temporal neighbours in a batch, as ``loss.temporal_pairs``: 0 < i_b - i_a <= window."""
+    diff = idx[None, :] - idx[:, None]
+    return np.argwhere((diff > 0) & (diff <= window))
+
+
+def share(idx: np.ndarray, window: int = 0) -> tuple[np.ndarray, int | None, float, float]:
+    """This worker's part of a batch of scans ``idx``: (the scans it loads, how many of them, first,
+    are its own, the weight of its occupancy loss, the weight of its Chamfer term).
+
+    Its own scans are a contiguous part of the batch (as equal as can be); after them come the
+    batch's scans within ``window`` of one of them, so that each neighbour pair of the batch is
+    the Chamfer term's on exactly one worker (the one that owns its earlier scan). Weights: workers
+    x its share of the batch's scans / pairs, so that the workers' mean is the batch's loss. A
+    worker left without scans (a batch smaller than the workers) loads the batch at weight 0.
+    One process: (idx, None, 1, 1)."""
     if not active():
-        return idx, 1.0
-    mine = np.array_split(np.asarray(idx), world())[rank()]
-    if len(mine) == 0:
-        return idx, 0.0
-    return mine, world() * len(mine) / len(idx)
+        return idx, None, 1.0, 1.0
+    idx = np.asarray(idx)
+    w = world()
+    own = np.array_split(np.arange(len(idx)), w)[rank()]
+    if len(own) == 0:
+        return idx, len(idx), 0.0, 0.0
+    pairs = _pairs(idx, window) if window > 0 else np.zeros((0, 2), np.int64)
+    mine = pairs[np.isin(pairs[:, 0], own)]
+    extra = np.setdiff1d(mine[:, 1], own)
+    loaded = np.concatenate([own, extra])
+    w_ch = w * len(mine) / len(pairs) if len(pairs) else 0.0
+    return idx[loaded], len(own), w * len(own) / len(idx), w_ch
 
 
 def any_true(flag: bool, device="cpu") -> bool:

@@ -84,13 +84,18 @@ def temporal_pairs(indices: torch.Tensor, window: int) -> tuple[torch.Tensor, to
 
 
 def chamfer_loss(glob: torch.Tensor, valid: torch.Tensor, indices: torch.Tensor, window: int,
-                 queries: torch.Tensor | None = None, queries_valid: torch.Tensor | None = None) -> torch.Tensor:
+                 queries: torch.Tensor | None = None, queries_valid: torch.Tensor | None = None,
+                 first_below: int | None = None) -> torch.Tensor:
     """Eq. 7 averaged over the neighbour pairs present in the batch (0 when there are none).
 
     glob (B, N, D): whole scans in the global frame; queries (B, n, D): optional subsets of them
     whose distances to the neighbour's whole scan estimate the two means of eq. 5.
+    ``first_below``: only the pairs whose earlier scan is at a position below it (a worker's own scans).
     """
     a, b = temporal_pairs(indices, window)
+    if first_below is not None:
+        keep = a < first_below
+        a, b = a[keep], b[keep]
     if a.numel() == 0:
         return glob.new_zeros(())
     q = (None,) * 4 if queries is None else (queries[a], queries_valid[a], queries[b], queries_valid[b])

@@ -110,7 +110,9 @@ class Trainer:
             return False
         return self.state.epoch < o.mnet_warmup_epochs or self.state.step - self.state.curriculum_steps < o.mnet_warmup_steps
 
-    def loss(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def loss(self, idx: torch.Tensor, own: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(eq. 4, eq. 7) on the scans ``idx``; ``own``: only the first ``own`` of them count in eq. 4
+        and as a pair's earlier scan in eq. 7 (a worker's part of a batch; the rest are its neighbours)."""
         cfg = self.cfg.loss
         scans, valid = self.model.scans[idx], self.valid[idx]
         if self.mnet_warmup_now():
@@ -120,18 +122,20 @@ class Trainer:
             poses = self.model.poses(idx)
         pts, pv = select_beams(scans, valid, cfg.beams_per_scan, self.gen)
         occ_global = transform(poses, pts)
-        t = free_space_fractions(pv.shape, cfg.free_samples, cfg.free_sampling, self.gen, self.device)
+        def mine(x: torch.Tensor) -> torch.Tensor:  # no slice at all in one process: the same graph as ever
+            return x if own is None else x[:own]
+
+        t = free_space_fractions(mine(pv).shape, cfg.free_samples, cfg.free_sampling, self.gen, self.device)
         if cfg.near_hit_samples:
-            t = torch.cat([t, near_hit_fractions(pts, cfg.near_hit_samples, cfg.near_hit_distance, self.gen)], -1)
-        free_global = transform(poses, free_space_points(pts, t))
-        occ_logits = self.model.mnet(occ_global)  # (B, M)
+            t = torch.cat([t, near_hit_fractions(mine(pts), cfg.near_hit_samples, cfg.near_hit_distance, self.gen)], -1)
+        free_global = transform(mine(poses), free_space_points(mine(pts), t))
+        occ_logits = self.model.mnet(mine(occ_global))  # (B, M)
         free_logits = self.model.mnet(free_global)  # (B, M, S)
-        bce = occupancy_bce(occ_logits, pv, free_logits, pv[..., None].expand_as(free_logits))
+        bce = occupancy_bce(occ_logits, mine(pv), free_logits, mine(pv)[..., None].expand_as(free_logits))
         if not self.use_chamfer:
-            return bce, bce, bce.new_zeros(())
+            return bce, bce.new_zeros(())
         # the beams sampled for eq. 4 are also the Chamfer queries (all beams in the paper profile)
-        ch = chamfer_loss(transform(poses, scans), valid, idx, cfg.chamfer_window, occ_global, pv)
-        return bce + self.cfg.loss.chamfer_weight * ch, bce, ch
+        return bce, chamfer_loss(transform(poses, scans), valid, idx, cfg.chamfer_window, occ_global, pv, own)
 
     def step(self, idx: np.ndarray, lr: float | None = None) -> tuple[float, float, float]:
         """One optimizer step on the scans ``idx``; ``lr``: a constant rate instead of the schedule."""
@@ -139,10 +143,14 @@ class Trainer:
         warmup = self.mnet_warmup_now()
         for g in self.opt.param_groups:
             g["lr"] = 0.0 if (warmup and g["name"] == "poses") else lr * g["lr_factor"]
-        # several workers: each takes a part of the batch, its loss weighted so that the mean over
-        # the workers is the batch's loss (and DistributedDataParallel averages the gradients)
-        mine, weight = distributed.share(idx)
-        total, bce, ch = (weight * x for x in self.loss_module()(torch.as_tensor(mine, device=self.device)))
+        # several workers: each takes a part of the batch (and the neighbours its Chamfer pairs need),
+        # its terms weighted so that their mean over the workers is the batch's loss; then
+        # DistributedDataParallel averages the gradients
+        mine, own, w_bce, w_ch = distributed.share(idx, self.cfg.loss.chamfer_window if self.use_chamfer else 0)
+        bce, ch = self.loss_module()(torch.as_tensor(mine, device=self.device), own)
+        if own is not None:  # weighted only on workers: one process keeps its graph (and its last bits)
+            bce, ch = w_bce * bce, w_ch * ch
+        total = bce + self.cfg.loss.chamfer_weight * ch if self.use_chamfer else bce
         self.opt.zero_grad(set_to_none=True)
         total.backward()
         self.opt.step()
@@ -153,7 +161,7 @@ class Trainer:
         return loss, bce, ch
 
     def loss_module(self) -> torch.nn.Module:
-        """``loss`` as a module over the model (idx -> (total, bce, chamfer)); with several workers
+        """``loss`` as a module over the model ((idx, own) -> (bce, chamfer)); with several workers
         in DistributedDataParallel, built again when the parameters or their use change (placements,
         hand-over, the end of the M-Net warm-up)."""
         # the L-Net gets no gradient in the M-Net warm-up and while poses are optimized directly
@@ -310,5 +318,5 @@ class _StepLoss(torch.nn.Module):
         super().__init__()
         self.model, self._loss = model, loss
 
-    def forward(self, idx: torch.Tensor):
-        return self._loss(idx)
+    def forward(self, idx: torch.Tensor, own: int | None = None):
+        return self._loss(idx, own)
