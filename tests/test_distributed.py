@@ -60,20 +60,21 @@ def test_a_batch_is_split_so_that_the_workers_mean_is_the_batch_loss(monkeypatch
     monkeypatch.setattr(distributed, "world", lambda: 3)
     rng = np.random.default_rng(0)
     scan_loss, pair_loss = rng.normal(size=20), rng.normal(size=(20, 20))  # any loss per scan and per pair
+    samples = rng.integers(1, 50, size=20)  # valid samples per scan: eq. 4 is a mean over samples
     for batch in (idx, np.array([2, 4, 5, 9, 10, 11, 12, 15]), np.array([4, 5])):
         owned, bce, ch = [], [], []
         for r in range(3):
             monkeypatch.setattr(distributed, "rank", lambda r=r: r)
-            loaded, own, w_bce, w_ch = distributed.share(batch, window)
+            loaded, own, w_bce, w_ch = distributed.share(batch, window, samples)
             a, b = (x.numpy() for x in temporal_pairs(torch.as_tensor(loaded), window))
             keep = a < own
             if w_bce > 0:
                 owned.append(loaded[:own])
                 assert set(loaded) <= set(batch)
-            bce.append(w_bce * scan_loss[loaded[:own]].mean())
+            bce.append(w_bce * np.average(scan_loss[loaded[:own]], weights=samples[loaded[:own]]))
             ch.append(w_ch * pair_loss[loaded[a[keep]], loaded[b[keep]]].mean() if keep.any() else 0.0)
         np.testing.assert_array_equal(np.concatenate(owned), batch)  # each scan owned once, in order
-        assert np.isclose(np.mean(bce), scan_loss[batch].mean())
+        assert np.isclose(np.mean(bce), np.average(scan_loss[batch], weights=samples[batch]))
         a, b = (x.numpy() for x in temporal_pairs(torch.as_tensor(batch), window))
         assert np.isclose(np.mean(ch), pair_loss[batch[a], batch[b]].mean() if len(a) else 0.0)
 

@@ -427,21 +427,21 @@ def test_a_killed_sweep_worker_fails_only_its_run_and_a_restart_redoes_only_that
 # 5. a loss that turns NaN/inf: rolled back to the last good state with a lower learning rate
 # ------------------------------------------------------------------------------------------
 def _poison(monkeypatch, at_steps, kind="nan"):
-    """Trainer.loss returns a non-finite loss (or a finite loss with NaN gradients) at the given
+    """Trainer.loss returns a non-finite eq. 4 term (or a finite one with NaN gradients) at the given
     steps, the first time each is reached."""
     from deepmapping.solver.trainer import Trainer
 
     loss, pending = Trainer.loss, set(at_steps)
 
-    def poisoned(self, idx):
-        total, bce, ch = loss(self, idx)
+    def poisoned(self, idx, own=None):
+        bce, ch = loss(self, idx, own)  # (eq. 4, eq. 7): the step adds them
         if self.state.step in pending or at_steps == "all":
             pending.discard(self.state.step)
             if kind == "gradient":  # value unchanged, d/dx sqrt(x) at 0 = inf -> NaN gradients
-                total = total + 0.0 * torch.sqrt(total - total.detach())
+                bce = bce + 0.0 * torch.sqrt(bce - bce.detach())
             else:
-                total = total * float(kind)
-        return total, bce, ch
+                bce = bce * float(kind)
+        return bce, ch
 
     monkeypatch.setattr(Trainer, "loss", poisoned)
 

@@ -190,14 +190,18 @@ def _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_place=N
 
 def _worker(rank: int, cfg: Config, scans: ScanSet, init, saved, port: int, addr: str) -> None:
     """A started worker (rank >= 1) of ``_train``: the same training, no output."""
+    import signal
     import sys
+    import traceback
 
     from deepmapping.solver import distributed
 
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is worker 0's to handle (it saves the checkpoint)
     distributed.join_group(rank, cfg.workers, port, addr, resolve_device(cfg.device))
     try:
         _train_here(scans, cfg, init, time.perf_counter(), None, saved, None, None)
-    except (Exception, KeyboardInterrupt):  # worker 0 meets the same error and reports it
+    except Exception:  # worker 0 reports the run's error; this worker's own cause goes to stderr
+        traceback.print_exc()
         sys.exit(1)
     finally:
         distributed.leave()
@@ -214,6 +218,7 @@ def _train_here(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_pl
     from deepmapping.solver.trainer import Trainer
 
     device = distributed.local_device(resolve_device(cfg.device))
+    init, saved = distributed.from_first((init, saved))  # torchrun: each process loaded and warm-started; worker 0's count
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     elif distributed.active():  # the machine's cores shared by its workers
@@ -227,7 +232,6 @@ def _train_here(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_pl
                              torch.as_tensor(frame.to_norm(init), dtype=torch.float32, device=device),
                              valid=valid, grid_shape=scans.grid_shape, pose_dof=scans.pose_dof)
     model.to(device)
-    distributed.broadcast_(model.init_poses)  # torchrun: each machine computed the warm start; worker 0's counts
     if cfg.method == "direct":
         model.make_direct()
 

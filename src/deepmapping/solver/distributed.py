@@ -5,9 +5,9 @@ Every worker holds the whole problem (scans, L-Net, M-Net) and takes its part of
 samples); DistributedDataParallel averages the
 gradients, so every worker makes the same optimizer step and the weights stay equal: the same
 steps as one process, each spread over the workers. Gloo on CPU, NCCL on CUDA. The decisions that
-end or undo a step (the loss's finiteness, the stopping rule, the time budget) are taken on values
-reduced over the workers, so all of them take the same branch; placements (cold start) and the
-warm start are broadcast from worker 0.
+end or undo a step (the loss's finiteness, the stopping rules, the time budget) are taken on values
+reduced over the workers, so all of them take the same branch; the warm start, a resumed
+checkpoint and the cold start's placements are worker 0's, broadcast.
 
 ``register`` with ``workers`` = N runs worker 0 in the calling process and starts N - 1 more
 (``spawn``); under ``torchrun`` (``WORLD_SIZE`` and ``RANK`` in the environment, any number of
@@ -27,7 +27,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from deepmapping.errors import TrainingError
+from deepmapping.errors import ConfigError, TrainingError
 
 RANK_SEED_STRIDE = 1_000_003  # worker r samples its beams from generator seed + r x this (r = 0: as one process)
 TIMEOUT = timedelta(minutes=10)  # a worker that does not reach a collective by then ends the run with an error
@@ -59,7 +59,10 @@ def local_device(device: str) -> str:
     """``device`` for this worker: with several workers on CUDA, one GPU each (LOCAL_RANK, or the rank)."""
     if device != "cuda" or not active():
         return device
-    index = int(os.environ.get("LOCAL_RANK", rank())) % max(torch.cuda.device_count(), 1)
+    if torch.cuda.device_count() < local_world():
+        raise ConfigError(f"{local_world()} workers on this machine but {torch.cuda.device_count()} CUDA device(s): "
+                          "one GPU each (fewer workers, or --device cpu)")
+    index = int(os.environ.get("LOCAL_RANK", rank()))
     torch.cuda.set_device(index)
     return f"cuda:{index}"
 
@@ -79,16 +82,17 @@ def _pairs(idx: np.ndarray, window: int) -> np.ndarray:
     return np.argwhere((diff > 0) & (diff <= window))
 
 
-def share(idx: np.ndarray, window: int = 0) -> tuple[np.ndarray, int | None, float, float]:
+def share(idx: np.ndarray, window: int = 0, samples: np.ndarray | None = None) -> tuple[np.ndarray, int | None, float, float]:
     """This worker's part of a batch of scans ``idx``: (the scans it loads, how many of them, first,
     are its own, the weight of its occupancy loss, the weight of its Chamfer term).
 
     Its own scans are a contiguous part of the batch (as equal as can be); after them come the
     batch's scans within ``window`` of one of them, so that each neighbour pair of the batch is
     the Chamfer term's on exactly one worker (the one that owns its earlier scan). Weights: workers
-    x its share of the batch's scans / pairs, so that the workers' mean is the batch's loss. A
-    worker left without scans (a batch smaller than the workers) loads the batch at weight 0.
-    One process: (idx, None, 1, 1)."""
+    x its share of the batch's valid samples (``samples``: per scan, all scans; None: equal) / of
+    its pairs, so that the workers' mean is the batch's loss (eq. 4 is a mean over valid samples,
+    eq. 7 over pairs). A worker left without scans (a batch smaller than the workers) loads the
+    batch at weight 0. One process: (idx, None, 1, 1)."""
     if not active():
         return idx, None, 1.0, 1.0
     idx = np.asarray(idx)
@@ -100,8 +104,10 @@ def share(idx: np.ndarray, window: int = 0) -> tuple[np.ndarray, int | None, flo
     mine = pairs[np.isin(pairs[:, 0], own)]
     extra = np.setdiff1d(mine[:, 1], own)
     loaded = np.concatenate([own, extra])
+    n = np.ones(len(idx)) if samples is None else np.asarray(samples, float)[idx]
+    w_bce = w * n[own].sum() / n.sum() if n.sum() > 0 else w * len(own) / len(idx)
     w_ch = w * len(mine) / len(pairs) if len(pairs) else 0.0
-    return idx[loaded], len(own), w * len(own) / len(idx), w_ch
+    return idx[loaded], len(own), w_bce, w_ch
 
 
 def any_true(flag: bool, device="cpu") -> bool:
@@ -111,6 +117,15 @@ def any_true(flag: bool, device="cpu") -> bool:
     t = torch.tensor([1.0 if flag else 0.0], device=device)
     dist.all_reduce(t, op=dist.ReduceOp.MAX)
     return bool(t.item() > 0)
+
+
+def from_first(obj):
+    """Worker 0's ``obj`` on every worker (``obj`` itself with one process)."""
+    if not active():
+        return obj
+    box = [obj]
+    dist.broadcast_object_list(box, 0)
+    return box[0]
 
 
 def gather(obj) -> list | None:
@@ -171,16 +186,16 @@ def group(workers: int, device: str, start_others: Callable[[int, str], list] | 
     if active() or (workers <= 1 and not from_environment()):
         yield
         return
-    procs = []
-    if from_environment():
-        dist.init_process_group(backend(device), init_method="env://", timeout=TIMEOUT)
-    else:
-        addr, port = "127.0.0.1", free_port()
-        procs = start_others(port, addr) if start_others else []
-        dist.init_process_group(backend(device), init_method=f"tcp://{addr}:{port}", rank=0, world_size=workers,
-                                timeout=TIMEOUT)
+    procs: list = []
     finished = False
     try:
+        if from_environment():
+            dist.init_process_group(backend(device), init_method="env://", timeout=TIMEOUT)
+        else:
+            addr, port = "127.0.0.1", free_port()
+            procs = start_others(port, addr) if start_others else []
+            dist.init_process_group(backend(device), init_method=f"tcp://{addr}:{port}", rank=0, world_size=workers,
+                                    timeout=TIMEOUT)
         yield
         finished = True
     finally:  # an error or Ctrl-C here ends the started workers too (theirs is the same, or they wait)

@@ -77,11 +77,15 @@ class Trainer:
         self.evaluate = evaluate
         self.device = valid.device
         # each worker its own beam samples (worker 0, or one process: the seed itself)
-        self.gen = torch.Generator(device=self.device).manual_seed(cfg.seed + distributed.rank() * distributed.RANK_SEED_STRIDE)
+        self.gen = torch.Generator(device=self.device).manual_seed(
+            (cfg.seed + distributed.rank() * distributed.RANK_SEED_STRIDE) % 2**64)
         self._step_loss: tuple[tuple, torch.nn.Module] | None = None  # (what it was built for, the loss module)
         self.use_curriculum = curriculum.enabled(cfg, model, ordered)
         self.reset_optimizer()
         k = valid.shape[0]
+        # valid beams each scan gives eq. 4 per step (select_beams takes valid ones first): workers' weights
+        beams = cfg.loss.beams_per_scan or valid.shape[1]
+        self.samples_per_scan = valid.sum(1).clamp(max=beams).cpu().numpy() if distributed.active() else None
         self.steps_per_epoch = len(epoch_batches(k, cfg.optim.batch_size, np.random.default_rng(0)))
         self.total_steps = cfg.optim.epochs * self.steps_per_epoch
         self.state = TrainState()
@@ -146,7 +150,8 @@ class Trainer:
         # several workers: each takes a part of the batch (and the neighbours its Chamfer pairs need),
         # its terms weighted so that their mean over the workers is the batch's loss; then
         # DistributedDataParallel averages the gradients
-        mine, own, w_bce, w_ch = distributed.share(idx, self.cfg.loss.chamfer_window if self.use_chamfer else 0)
+        mine, own, w_bce, w_ch = distributed.share(idx, self.cfg.loss.chamfer_window if self.use_chamfer else 0,
+                                                   self.samples_per_scan)
         bce, ch = self.loss_module()(torch.as_tensor(mine, device=self.device), own)
         if own is not None:  # weighted only on workers: one process keeps its graph (and its last bits)
             bce, ch = w_bce * bce, w_ch * ch
@@ -289,7 +294,7 @@ class Trainer:
             if st.early_stop_ref is not None:
                 moved = np.abs(_positions(poses) - _positions(st.early_stop_ref)).max()
                 st.early_stop_ref = poses
-                if moved < cfg.early_stop_tol and not last:
+                if distributed.any_true(moved < cfg.early_stop_tol, self.device) and not last:
                     st.stop_reason = f"the poses moved less than optim.early_stop_tol = {cfg.early_stop_tol:g}"
                     last = True
         return last
