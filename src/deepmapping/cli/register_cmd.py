@@ -65,7 +65,7 @@ def run_register(data: Path, out: Path, cfg, fmt, gt, resume: bool, plots: bool 
     init = cfg0.warm_start.path if cfg0.warm_start.method == "file" and not resume else None
     scans = load_scans(data, fmt=fmt, gt_path=gt, init_path=init, keyframes=keyframes,
                        non_keyframes=non_keyframes, depth=depth)
-    for note in scans.notes:
+    for note in scans.notes if not launched_worker() else ():  # torchrun: worker 0 speaks for all
         console.print(f"note: {note}", highlight=False, soft_wrap=True)
     cfg = cfg(scans.is_3d) if callable(cfg) else cfg
     if int(os.environ.get("WORLD_SIZE", "1")) > 1:  # torchrun: the run says how many trained it
