@@ -401,7 +401,7 @@ def place_new_scan(trainer: Trainer, j: int) -> None:
                             points=len(few[0]))
     best = search_rounds(score, centres, keep, shift, turn, cfg, rng, model.scans.dtype)
     if seeds is not None:  # the wide search's seeds, refined apart, replace the rounds' best if lower (prefer_wide)
-        far = refine(wide_score, seeds, wide_score(seeds), wide_refine, cfg.refine_steps, cfg.refine_lr,
+        far = refine(wide_score, seeds, distributed.split_scores(wide_score, seeds), wide_refine, cfg.refine_steps, cfg.refine_lr,
                      model.scans.dtype)
         best = prefer_wide(best, far, score(np.stack([best, far])), cfg.wide_margin, cfg.wide_heading_only)
     set_placement(model, range(j, model.scans.shape[0]), best)  # unplaced scans wait there too
@@ -423,7 +423,7 @@ def search_rounds(score: Callable, centres: np.ndarray, keep: np.ndarray, shift:
         cands = se2.compose(centres, delta)
         if best is not None:
             cands[0] = best
-        losses = score(cands)
+        losses = distributed.split_scores(score, cands)  # several workers: each scores its share
         seen_c.append(cands)
         seen_l.append(losses)
         i = int(torch.argmin(losses))
@@ -462,7 +462,7 @@ def wide_search(score: Callable, centres: np.ndarray, h: int, radius: float, tur
     r, a = np.sqrt(rng.uniform(0, 1, h)) * radius, rng.uniform(0, 2 * np.pi, h)
     cands = se2.compose(c, np.stack([r * np.cos(a), r * np.sin(a), rng.uniform(-1, 1, h) * turn], 1))
     block = max(1, WIDE_BLOCK_POINTS // points)
-    losses = torch.cat([score(cands[i: i + block]) for i in range(0, h, block)])
+    losses = torch.cat([distributed.split_scores(score, cands[i: i + block]) for i in range(0, h, block)])
     return cands[torch.argsort(losses)[:keep].cpu().numpy()]
 
 
@@ -473,15 +473,22 @@ def refine(score: Callable, cands: np.ndarray, losses: torch.Tensor, top: int, s
     before the ranking, one that only looked good at its starting point does not win. The
     unrefined hypotheses stay in the final ranking, so refining never picks a higher loss."""
     order = torch.argsort(losses)[:top].cpu().numpy()
-    p = torch.tensor(cands[order], dtype=dtype, requires_grad=True)
-    opt = torch.optim.Adam([p], lr=lr)
-    with torch.enable_grad():
-        for _ in range(steps):
-            (g,) = torch.autograd.grad(score(p).sum(), [p])
-            p.grad = g
-            opt.step()
-    both = torch.cat([p.detach(), torch.as_tensor(cands[order], dtype=dtype)])  # a step that made it worse loses
-    final = score(both)
+    order = order[distributed.part(len(order))]  # several workers: each refines its share
+    both = torch.zeros((0, *cands.shape[1:]), dtype=dtype)
+    final = torch.zeros(0, dtype=dtype)
+    if len(order):
+        p = torch.tensor(cands[order], dtype=dtype, requires_grad=True)
+        opt = torch.optim.Adam([p], lr=lr)
+        with torch.enable_grad():
+            for _ in range(steps):
+                (g,) = torch.autograd.grad(score(p).sum(), [p])
+                p.grad = g
+                opt.step()
+        both = torch.cat([p.detach(), torch.as_tensor(cands[order], dtype=dtype)])  # a step that made it worse loses
+        final = score(both)
+    if distributed.active():
+        both = torch.cat(distributed.gather(both.cpu()))
+        final = torch.cat([f.to(torch.float64) for f in distributed.gather(final.detach().cpu())])
     return both[int(torch.argmin(final))].double().cpu().numpy()
 
 

@@ -7,7 +7,8 @@ gradients, so every worker makes the same optimizer step and the weights stay eq
 steps as one process, each spread over the workers. Gloo on CPU, NCCL on CUDA. The decisions that
 end or undo a step (the loss's finiteness, the stopping rules, the time budget) are taken on values
 reduced over the workers, so all of them take the same branch; the warm start, a resumed
-checkpoint and the cold start's placements are worker 0's, broadcast.
+checkpoint and the cold start's placements are worker 0's, broadcast. The cold start's placement
+hypotheses are scored (and refined) in shares, the values gathered in order (``split_scores``).
 
 ``register`` with ``workers`` = N runs worker 0 in the calling process and starts N - 1 more
 (``spawn``); under ``torchrun`` (``WORLD_SIZE`` and ``RANK`` in the environment, any number of
@@ -108,6 +109,21 @@ def share(idx: np.ndarray, window: int = 0, samples: np.ndarray | None = None) -
     w_bce = w * n[own].sum() / n.sum() if n.sum() > 0 else w * len(own) / len(idx)
     w_ch = w * len(mine) / len(pairs) if len(pairs) else 0.0
     return idx[loaded], len(own), w_bce, w_ch
+
+
+def part(n: int) -> np.ndarray:
+    """This worker's positions of ``n`` items split between the workers (contiguous; all of them with one)."""
+    return np.array_split(np.arange(n), world())[rank()]
+
+
+def split_scores(score: Callable, cands: np.ndarray) -> torch.Tensor:
+    """``score(cands)`` (one value per candidate, no gradient) with the candidates split between the
+    workers and the values gathered in order (on the CPU); ``score(cands)`` itself with one process."""
+    if not active():
+        return score(cands)
+    mine = part(len(cands))
+    values = score(cands[mine]).detach().cpu() if len(mine) else torch.zeros(0)
+    return torch.cat([v.to(values.dtype) for v in gather(values) if len(v)])
 
 
 def any_true(flag: bool, device="cpu") -> bool:
