@@ -12,7 +12,7 @@ from typing import Callable
 
 import numpy as np
 
-from deepmapping.config import Config, load_config, migrate_settings, resolve_profile, validate_config
+from deepmapping.config import Config, load_config, resolve_profile, validate_config
 from deepmapping.data import ScanSet, identity_poses
 from deepmapping.errors import ConfigError, InputError
 from deepmapping.evaluation import ate, evaluate
@@ -147,7 +147,7 @@ def _load_checkpoint(checkpoint, cfg: Config) -> dict | None:
         data = ckpt.load(checkpoint)
     except Exception as exc:  # corrupt file: a torch/pickle error of any kind
         raise InputError(f"{checkpoint}: cannot read checkpoint ({type(exc).__name__})") from None
-    # a checkpoint of an older version: its names moved (migrate_settings), settings added since take their defaults
+    # a checkpoint of an older version: its names moved, settings added since take their defaults
     if _saved_settings(data["config"]) != cfg.model_dump():
         raise ConfigError(f"{checkpoint}: was written with other settings; resume with the run's config")
     return data
@@ -155,7 +155,7 @@ def _load_checkpoint(checkpoint, cfg: Config) -> dict | None:
 
 def _saved_settings(saved: dict) -> dict | None:
     try:
-        return validate_config(migrate_settings(saved)).model_dump()
+        return validate_config(saved).model_dump()  # validate_config moves old names too
     except ConfigError:
         return None
 

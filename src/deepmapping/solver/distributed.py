@@ -29,6 +29,7 @@ import torch
 import torch.distributed as dist
 
 from deepmapping.errors import ConfigError, TrainingError
+from deepmapping.solver.loss import temporal_pairs
 
 RANK_SEED_STRIDE = 1_000_003  # worker r samples its beams from generator seed + r x this (r = 0: as one process)
 TIMEOUT = timedelta(minutes=10)  # a worker that does not reach a collective by then ends the run with an error
@@ -77,12 +78,6 @@ def mean(values: torch.Tensor) -> torch.Tensor:
     return out / world()
 
 
-def _pairs(idx: np.ndarray, window: int) -> np.ndarray:
-    """(a, b) positions of the temporal neighbours in a batch, as ``loss.temporal_pairs``: 0 < i_b - i_a <= window."""
-    diff = idx[None, :] - idx[:, None]
-    return np.argwhere((diff > 0) & (diff <= window))
-
-
 def share(idx: np.ndarray, window: int = 0, samples: np.ndarray | None = None) -> tuple[np.ndarray, int | None, float, float]:
     """This worker's part of a batch of scans ``idx``: (the scans it loads, how many of them, first,
     are its own, the weight of its occupancy loss, the weight of its Chamfer term).
@@ -101,7 +96,7 @@ def share(idx: np.ndarray, window: int = 0, samples: np.ndarray | None = None) -
     own = np.array_split(np.arange(len(idx)), w)[rank()]
     if len(own) == 0:
         return idx, len(idx), 0.0, 0.0
-    pairs = _pairs(idx, window) if window > 0 else np.zeros((0, 2), np.int64)
+    pairs = torch.stack(temporal_pairs(torch.as_tensor(idx), window), 1).numpy()
     mine = pairs[np.isin(pairs[:, 0], own)]
     extra = np.setdiff1d(mine[:, 1], own)
     loaded = np.concatenate([own, extra])
