@@ -93,7 +93,7 @@ def share(idx: np.ndarray, window: int = 0, samples: np.ndarray | None = None) -
         return idx, None, 1.0, 1.0
     idx = np.asarray(idx)
     w = world()
-    own = np.array_split(np.arange(len(idx)), w)[rank()]
+    own = part(len(idx))
     if len(own) == 0:
         return idx, len(idx), 0.0, 0.0
     pairs = torch.stack(temporal_pairs(torch.as_tensor(idx), window), 1).numpy()
@@ -118,7 +118,8 @@ def split_scores(score: Callable, cands: np.ndarray) -> torch.Tensor:
         return score(cands)
     mine = part(len(cands))
     values = score(cands[mine]).detach().cpu() if len(mine) else torch.zeros(0)
-    return torch.cat([v.to(values.dtype) for v in gather(values) if len(v)])
+    parts = [v for v in gather(values) if len(v)]  # worker 0's part is never empty: its dtype, on every worker
+    return torch.cat([v.to(parts[0].dtype) for v in parts])
 
 
 def any_true(flag: bool, device="cpu") -> bool:
