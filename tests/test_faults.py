@@ -434,14 +434,14 @@ def _poison(monkeypatch, at_steps, kind="nan"):
     loss, pending = Trainer.loss, set(at_steps)
 
     def poisoned(self, idx, own=None):
-        bce, ch = loss(self, idx, own)  # (eq. 4, eq. 7): the step adds them
+        bce, ch, odo = loss(self, idx, own)  # (eq. 4, eq. 7, odometry factor): the step adds them
         if self.state.step in pending or at_steps == "all":
             pending.discard(self.state.step)
             if kind == "gradient":  # value unchanged, d/dx sqrt(x) at 0 = inf -> NaN gradients
                 bce = bce + 0.0 * torch.sqrt(bce - bce.detach())
             else:
                 bce = bce * float(kind)
-        return bce, ch
+        return bce, ch, odo
 
     monkeypatch.setattr(Trainer, "loss", poisoned)
 

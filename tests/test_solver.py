@@ -115,7 +115,7 @@ def _fit_mnet_bce(scans, poses, steps=150):
     idx = torch.arange(scans.num_scans)
     values = []
     for _ in range(steps):
-        total, _ = trainer.loss(idx)  # (eq. 4, eq. 7); no Chamfer term here
+        total, _, _ = trainer.loss(idx)  # (eq. 4, eq. 7, odometry); no Chamfer term here
         trainer.opt.zero_grad()
         total.backward()
         trainer.opt.step()

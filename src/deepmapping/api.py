@@ -125,10 +125,33 @@ def auto_warm_start(scans: ScanSet) -> str:
     identity fails on their 30 deg turns), point-to-plane ICP for 6-DoF depth images (handheld:
     on 7-Scenes 6-10 mm, point-to-point 11-14 mm, no registration 60 mm, docs/results.md), point
     clouds and 2D scans; loop closures for keyframed 2D logs (thousands of scans, loops of
-    hundreds of metres)."""
+    hundreds of metres); an ordered 3D sequence's own recorded poses where the loader read them
+    (3DTK's .pose files: slam6D starts from them; 1.7 cm from its result on our sample, every ICP
+    variant 3-16 cm), held by the odometry factor (resolve_odometry_sigma)."""
     if not scans.is_3d:
         return "loop-closure" if scans.sequence is not None else "icp-plane"
+    if scans.recorded_poses and scans.init_poses is not None and scans.ordered:
+        return "file"
     return "icp-planar" if scans.grid_shape is not None and scans.pose_dof == 3 else "icp-plane"
+
+
+# loss.odometry_sigma "auto" with the scans' own recorded poses as the warm start: [normalized map
+# units, degrees]; 0.025 is 48 cm on the 3DTK sample's 19 m half-extent (docs/results.md)
+AUTO_ODOMETRY_SIGMA = (0.025, 10.0)
+
+
+def resolve_odometry_sigma(scans: ScanSet, cfg: Config) -> tuple[float, float] | None:
+    """loss.odometry_sigma for this run (None = no odometry factor): as given, or "auto" = on when
+    the warm start is the ordered 3D scans' own recorded poses (``ScanSet.recorded_poses``: the
+    loader read them with the data, as 3DTK's .pose files), off for every other start."""
+    sigma = cfg.loss.odometry_sigma
+    if sigma == "off" or not (scans.is_3d and scans.ordered):
+        return None
+    if sigma != "auto":
+        return float(sigma[0]), float(sigma[1])
+    ws = cfg.warm_start.method if cfg.warm_start.method != "auto" else auto_warm_start(scans)
+    own = ws == "file" and cfg.warm_start.path is None and scans.recorded_poses and scans.init_poses is not None
+    return AUTO_ODOMETRY_SIGMA if own else None
 
 
 def _read_init(path, is_3d: bool) -> np.ndarray:
@@ -240,7 +263,8 @@ def _train_here(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_pl
             return None
         return ate(frame.from_norm(poses_norm), scans.gt_poses) * scans.unit_scale
 
-    trainer = Trainer(cfg, model, valid, scans.ordered, evaluate)
+    odometry_sigma = resolve_odometry_sigma(scans, cfg)
+    trainer = Trainer(cfg, model, valid, scans.ordered, evaluate, odometry_sigma=odometry_sigma)
     trainer.extra = {"init_poses_input": init.tolist(), "frame": frame.to_dict(), "map_resolution": map_resolution}
     if saved is not None:
         ckpt.restore(trainer, saved)
@@ -252,7 +276,8 @@ def _train_here(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_pl
     result.map_resolution = map_resolution
     result.timings = {"curriculum_s": trainer.curriculum_s, "training_s": training_s - trainer.curriculum_s}
     result.history = dict(trainer.state.history, rollbacks=trainer.state.rollbacks,
-                          stop_reason=trainer.state.stop_reason, reviewed=trainer.state.reviewed)
+                          stop_reason=trainer.state.stop_reason, reviewed=trainer.state.reviewed,
+                          odometry_sigma=None if trainer.odometry_sigma is None else list(trainer.odometry_sigma))
     if trainer.use_curriculum:
         result.placements = frame.from_norm(model.init_poses.cpu().numpy().astype(np.float64))
     result.occupancy = _occupancy_fn(model, frame, device)

@@ -13,7 +13,7 @@ import json
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from deepmapping.errors import ConfigError
 
@@ -95,6 +95,22 @@ class LossConfig(_Section):
     beams_per_scan: PosInt | None = None  # None = every beam each step; else a random subset
     chamfer_weight: float = Field(10.0, ge=0)  # lambda of eq. 6 (paper: 10 for 2D)
     chamfer_window: int = Field(1, ge=0)  # N(i) = {i-w, ..., i+w} \ {i}
+    # The odometry factor (3D ordered scans): the warm start's relative motion between temporal
+    # neighbours as a soft constraint, mean over pairs of |dt / sigma_t|^2 + (dtheta / sigma_r)^2
+    # added to the loss; [sigma_t in normalized map units, sigma_r in degrees]. "auto": [0.025, 10]
+    # when the warm start is the scans' own recorded poses (3DTK's .pose files), off for every other
+    # start (an ICP start's errors would be held); "off": never.
+    odometry_sigma: str | list[float] = "auto"
+
+    @field_validator("odometry_sigma", mode="before")
+    @classmethod
+    def _odometry_sigma(cls, v):
+        v = "off" if v is False or v is None else v  # YAML reads an unquoted off / no / null so
+        ok = v in ("auto", "off") or (isinstance(v, (list, tuple)) and len(v) == 2 and all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) and 0 < x < float("inf") for x in v))
+        if not ok:
+            raise ValueError(f"must be 'auto', 'off' or [sigma_t, sigma_r_deg] (two numbers > 0), got {v!r}")
+        return v if isinstance(v, str) else [float(x) for x in v]
 
 
 class OptimConfig(_Section):

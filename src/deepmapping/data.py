@@ -55,6 +55,9 @@ class ScanSet:
     unit_scale: multiply a length in ``points`` units by this to report it in ``unit``
         (the authors' layout stores px/512, so unit_scale = 512 and unit = "px").
     ordered: True when scans are a temporal sequence (enables the Chamfer term).
+    recorded_poses: ``init_poses`` are the sensor's own recorded poses that came with the data
+        (3DTK's .pose files), not a start someone computed or gave: 3D ``--warm-start auto`` then
+        starts from them, held by the odometry factor (api.resolve_odometry_sigma).
     """
 
     points: np.ndarray
@@ -70,6 +73,7 @@ class ScanSet:
     pose_dof: int = 3
     sequence: FullSequence | None = None  # every scan of the input, when these are keyframes
     notes: list[str] = field(default_factory=list)  # what the loader left out or assumed (the CLI prints them)
+    recorded_poses: bool = False
 
     @property
     def num_scans(self) -> int:

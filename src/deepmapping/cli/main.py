@@ -104,7 +104,9 @@ def register(
     set: Optional[List[str]] = typer.Option(None, "--set", help="Override a setting: --set optim.epochs=200."),
     epochs: Optional[int] = typer.Option(None, help="Number of epochs."),
     warm_start: Optional[str] = typer.Option(None, help="auto (default: icp-plane; loop-closure for logs; icp-planar "
-                                             "for AVD-like depth images with planar poses) | icp-plane | icp-point | "
+                                             "for AVD-like depth images with planar poses; a 3D sequence's own "
+                                             "recorded poses, e.g. 3DTK's .pose, held by the odometry factor) | "
+                                             "icp-plane | icp-point | "
                                              "loop-closure | icp-planar | "
                                              "multiway | kiss-icp (LiDAR sequences) | file (the poses the data "
                                              "came with) | none."),
@@ -161,6 +163,10 @@ def register(
         moved = result.history["reviewed"]
         typer.echo(f"cold start: the review of the placements placed {len(moved)} scan(s) again "
                    f"({', '.join(map(str, sorted(moved)))})")
+    if result.history.get("odometry_sigma"):
+        st, sr = result.history["odometry_sigma"]
+        typer.echo(f"odometry factor: the warm start's relative motions held with sigma {st:g} x the map's half-size and "
+                   f"{sr:g} deg (loss.odometry_sigma; --set loss.odometry_sigma=off drops it)")
     if result.history.get("stop_reason"):
         epochs = (result.history.get("epoch") or [0])[-1]
         typer.echo(f"training stopped after {epochs:g} of {result.config.optim.epochs} epochs: "

@@ -222,4 +222,4 @@ def load_3dtk(folder: str | os.PathLike, gt_path=None, init_path=None, max_point
     init = _poses(folder, files, init_path, ".frames" if use_frames else ".pose", "initial poses")
     return ScanSet(points=points, valid=valid, gt_poses=gt, init_poses=init, unit_scale=100.0, unit="cm",
                    ordered=True, names=[f.stem for f in files], source=str(folder), grid_shape=None,
-                   pose_dof=6).validate()
+                   pose_dof=6, recorded_poses=init_path is None and not use_frames).validate()

@@ -51,7 +51,8 @@ def write_run(out: Path, scans: ScanSet, result: Result, data_info: dict, plots:
                                   "unit_scale": scans.unit_scale, **data_info,
                                   "rollbacks": result.history.get("rollbacks", []),
                                   "stop_reason": result.history.get("stop_reason", ""),
-                                  "reviewed": result.history.get("reviewed", []), **more})
+                                  "reviewed": result.history.get("reviewed", []),
+                                  "odometry_sigma": result.history.get("odometry_sigma"), **more})
     if plots:
         extras.write_pictures(out, scans, result)
         _write_curves(out, scans, result)

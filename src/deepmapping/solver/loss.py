@@ -1,4 +1,4 @@
-"""DeepMapping loss: L_cls (eq. 4) + lambda * L_ch (eq. 5-7)."""
+"""DeepMapping loss: L_cls (eq. 4) + lambda * L_ch (eq. 5-7), and an optional odometry factor."""
 
 from __future__ import annotations
 
@@ -100,3 +100,31 @@ def chamfer_loss(glob: torch.Tensor, valid: torch.Tensor, indices: torch.Tensor,
         return glob.new_zeros(())
     q = (None,) * 4 if queries is None else (queries[a], queries_valid[a], queries[b], queries_valid[b])
     return chamfer(glob[a], valid[a], glob[b], valid[b], *q).mean()
+
+
+def _rigid_inverse(m: torch.Tensor) -> torch.Tensor:
+    rot_t = m[..., :3, :3].transpose(-1, -2)
+    out = torch.zeros_like(m)
+    out[..., :3, :3] = rot_t
+    out[..., :3, 3] = -(rot_t @ m[..., :3, 3:])[..., 0]
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def odometry_factor(poses: torch.Tensor, prior: torch.Tensor, indices: torch.Tensor,
+                    sigma_t: float, sigma_r_rad: float, first_below: int | None = None) -> torch.Tensor:
+    """The odometry factor: each temporal neighbour pair (i, i+1) of the batch, the relative motion
+    D = T_i^-1 T_{i+1} of ``poses`` (B, 4, 4) against that of ``prior`` (the warm start, D0):
+    E = D0^-1 D, |t_E|^2 / sigma_t^2 + theta_E^2 / sigma_r^2 averaged over the pairs (theta^2 from
+    |R_E - I|_F^2 / 2, smooth at 0); 0 when the batch has no pair. ``first_below`` as in chamfer_loss."""
+    a, b = temporal_pairs(indices, 1)
+    if first_below is not None:
+        keep = a < first_below
+        a, b = a[keep], b[keep]
+    if a.numel() == 0:
+        return poses.new_zeros(())
+    err = _rigid_inverse(_rigid_inverse(prior[a]) @ prior[b]) @ (_rigid_inverse(poses[a]) @ poses[b])
+    eye = torch.eye(3, dtype=poses.dtype, device=poses.device)
+    trans = (err[:, :3, 3] ** 2).sum(-1) / sigma_t ** 2
+    rot = ((err[:, :3, :3] - eye) ** 2).sum((-1, -2)) / 2.0 / sigma_r_rad ** 2
+    return (trans + rot).mean()

@@ -15,7 +15,7 @@ from deepmapping.errors import Interrupted, TrainingError
 from deepmapping.solver import checkpoint as ckpt
 from deepmapping.solver import curriculum, distributed
 from deepmapping.solver.geometry import transform
-from deepmapping.solver.loss import chamfer_loss, occupancy_bce
+from deepmapping.solver.loss import chamfer_loss, occupancy_bce, odometry_factor
 from deepmapping.solver.model import DeepMappingModel
 from deepmapping.solver.sampling import free_space_fractions, free_space_points, near_hit_fractions, select_beams
 
@@ -70,8 +70,11 @@ def epoch_batches(num_scans: int, batch: int, rng: np.random.Generator) -> list[
 
 class Trainer:
     def __init__(self, cfg: Config, model: DeepMappingModel, valid: torch.Tensor, ordered: bool,
-                 evaluate: Callable[[np.ndarray], float | None] | None = None):
+                 evaluate: Callable[[np.ndarray], float | None] | None = None,
+                 odometry_sigma: tuple[float, float] | None = None):
         self.cfg, self.model, self.valid = cfg, model, valid
+        # the odometry factor (loss.odometry_sigma as resolved for this run: normalized units, degrees)
+        self.odometry_sigma = odometry_sigma if ordered and model.is_3d else None
         self.sensor: tuple | None = None  # curriculum cache: the fitted pinhole or polar beams; () = none fits
         self.use_chamfer = ordered and cfg.loss.chamfer_weight > 0
         self.evaluate = evaluate
@@ -114,9 +117,10 @@ class Trainer:
             return False
         return self.state.epoch < o.mnet_warmup_epochs or self.state.step - self.state.curriculum_steps < o.mnet_warmup_steps
 
-    def loss(self, idx: torch.Tensor, own: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """(eq. 4, eq. 7) on the scans ``idx``; ``own``: only the first ``own`` of them count in eq. 4
-        and as a pair's earlier scan in eq. 7 (a worker's part of a batch; the rest are its neighbours)."""
+    def loss(self, idx: torch.Tensor, own: int | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(eq. 4, eq. 7, the odometry factor) on the scans ``idx``; ``own``: only the first ``own`` of
+        them count in eq. 4 and as a pair's earlier scan in eq. 7 and the factor (a worker's part of a
+        batch; the rest are its neighbours). Terms that are off are 0."""
         cfg = self.cfg.loss
         scans, valid = self.model.scans[idx], self.valid[idx]
         if self.mnet_warmup_now():
@@ -136,10 +140,14 @@ class Trainer:
         occ_logits = self.model.mnet(mine(occ_global))  # (B, M)
         free_logits = self.model.mnet(free_global)  # (B, M, S)
         bce = occupancy_bce(occ_logits, mine(pv), free_logits, mine(pv)[..., None].expand_as(free_logits))
+        odo = bce.new_zeros(())
+        if self.odometry_sigma is not None and poses.requires_grad:  # not while the poses are held
+            sigma_t, sigma_r = self.odometry_sigma
+            odo = odometry_factor(poses, self.model.init_poses[idx], idx, sigma_t, math.radians(sigma_r), own)
         if not self.use_chamfer:
-            return bce, bce.new_zeros(())
+            return bce, bce.new_zeros(()), odo
         # the beams sampled for eq. 4 are also the Chamfer queries (all beams in the paper profile)
-        return bce, chamfer_loss(transform(poses, scans), valid, idx, cfg.chamfer_window, occ_global, pv, own)
+        return bce, chamfer_loss(transform(poses, scans), valid, idx, cfg.chamfer_window, occ_global, pv, own), odo
 
     def step(self, idx: np.ndarray, lr: float | None = None) -> tuple[float, float, float]:
         """One optimizer step on the scans ``idx``; ``lr``: a constant rate instead of the schedule."""
@@ -150,12 +158,15 @@ class Trainer:
         # several workers: each takes a part of the batch (and the neighbours its Chamfer pairs need),
         # its terms weighted so that their mean over the workers is the batch's loss; then
         # DistributedDataParallel averages the gradients
-        mine, own, w_bce, w_ch = distributed.share(idx, self.cfg.loss.chamfer_window if self.use_chamfer else 0,
-                                                   self.samples_per_scan)
-        bce, ch = self.loss_module()(torch.as_tensor(mine, device=self.device), own)
+        # (the odometry factor's pairs are neighbours too: weighted as the Chamfer pairs, exact for window 1)
+        window = max(self.cfg.loss.chamfer_window if self.use_chamfer else 0, int(self.odometry_sigma is not None))
+        mine, own, w_bce, w_ch = distributed.share(idx, window, self.samples_per_scan)
+        bce, ch, odo = self.loss_module()(torch.as_tensor(mine, device=self.device), own)
         if own is not None:  # weighted only on workers: one process keeps its graph (and its last bits)
-            bce, ch = w_bce * bce, w_ch * ch
+            bce, ch, odo = w_bce * bce, w_ch * ch, w_ch * odo
         total = bce + self.cfg.loss.chamfer_weight * ch if self.use_chamfer else bce
+        if self.odometry_sigma is not None:
+            total = total + odo
         self.opt.zero_grad(set_to_none=True)
         total.backward()
         self.opt.step()
