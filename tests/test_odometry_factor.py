@@ -110,6 +110,7 @@ def test_each_training_step_adds_the_factor_to_eq4_and_eq7():
                              torch.as_tensor(frame.to_norm(scans.init_poses), dtype=torch.float32),
                              valid=torch.as_tensor(scans.valid), pose_dof=6)
     model.make_direct()
+    sigma = (sigma[0] / frame.scale, sigma[1])  # metres -> the trainer's normalized frame (as api does)
     trainer = Trainer(cfg, model, torch.as_tensor(scans.valid), ordered=True, odometry_sigma=sigma)
     idx = torch.arange(3)
     assert float(trainer.loss(idx)[2]) < 1e-10  # at the warm start

@@ -135,9 +135,10 @@ def auto_warm_start(scans: ScanSet) -> str:
     return "icp-planar" if scans.grid_shape is not None and scans.pose_dof == 3 else "icp-plane"
 
 
-# loss.odometry_sigma "auto" with the scans' own recorded poses as the warm start: [normalized map
-# units, degrees]; 0.025 is 48 cm on the 3DTK sample's 19 m half-extent (docs/results.md)
-AUTO_ODOMETRY_SIGMA = (0.025, 10.0)
+# loss.odometry_sigma "auto" with the scans' own recorded poses as the warm start: [the scans' units
+# (metres), degrees] (docs/results.md: held the 3DTK sample within 3 cm of slam6D; in metres, not
+# map units, so that a small scene's odometry is not held harder than a large one's)
+AUTO_ODOMETRY_SIGMA = (0.5, 10.0)
 
 
 def resolve_odometry_sigma(scans: ScanSet, cfg: Config) -> tuple[float, float] | None:
@@ -263,8 +264,9 @@ def _train_here(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_pl
             return None
         return ate(frame.from_norm(poses_norm), scans.gt_poses) * scans.unit_scale
 
-    odometry_sigma = resolve_odometry_sigma(scans, cfg)
-    trainer = Trainer(cfg, model, valid, scans.ordered, evaluate, odometry_sigma=odometry_sigma)
+    odometry_sigma = resolve_odometry_sigma(scans, cfg)  # the trainer works in the normalized frame
+    odometry_norm = None if odometry_sigma is None else (odometry_sigma[0] / frame.scale, odometry_sigma[1])
+    trainer = Trainer(cfg, model, valid, scans.ordered, evaluate, odometry_sigma=odometry_norm)
     trainer.extra = {"init_poses_input": init.tolist(), "frame": frame.to_dict(), "map_resolution": map_resolution}
     if saved is not None:
         ckpt.restore(trainer, saved)
@@ -277,7 +279,7 @@ def _train_here(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_pl
     result.timings = {"curriculum_s": trainer.curriculum_s, "training_s": training_s - trainer.curriculum_s}
     result.history = dict(trainer.state.history, rollbacks=trainer.state.rollbacks,
                           stop_reason=trainer.state.stop_reason, reviewed=trainer.state.reviewed,
-                          odometry_sigma=None if trainer.odometry_sigma is None else list(trainer.odometry_sigma))
+                          odometry_sigma=None if odometry_sigma is None else list(odometry_sigma))
     if trainer.use_curriculum:
         result.placements = frame.from_norm(model.init_poses.cpu().numpy().astype(np.float64))
     result.occupancy = _occupancy_fn(model, frame, device)

@@ -165,7 +165,7 @@ def register(
                    f"({', '.join(map(str, sorted(moved)))})")
     if result.history.get("odometry_sigma"):
         st, sr = result.history["odometry_sigma"]
-        typer.echo(f"odometry factor: the warm start's relative motions held with sigma {st:g} x the map's half-size and "
+        typer.echo(f"odometry factor: the warm start's relative motions held with sigma {st:g} (scan units) and "
                    f"{sr:g} deg (loss.odometry_sigma; --set loss.odometry_sigma=off drops it)")
     if result.history.get("stop_reason"):
         epochs = (result.history.get("epoch") or [0])[-1]

@@ -10,7 +10,8 @@ classical methods ``default-3d``. Reported per scan: rotation error (deg) and tr
 error at the scan's centroid (mm), relative to bun000 (``io.bunny.bunny_pose_errors``).
 
 3DTK (three outdoor scans): every method starts from the odometry in the .pose files, with
-``default-3d``; reported per scan: the difference to slam6D's own result (last line of each
+``default-3d`` (DeepMapping and direct optimization hold it by the odometry factor, as the default
+command does); reported per scan: the difference to slam6D's own result (last line of each
 .frames file; a reference, not ground truth) as translation (cm) and rotation (deg), relative
 to scan000. Each method's poses are written as ``3dtk_frames/<method>/scanNNN.frames``.
 """

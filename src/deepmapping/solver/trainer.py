@@ -73,7 +73,7 @@ class Trainer:
                  evaluate: Callable[[np.ndarray], float | None] | None = None,
                  odometry_sigma: tuple[float, float] | None = None):
         self.cfg, self.model, self.valid = cfg, model, valid
-        # the odometry factor (loss.odometry_sigma as resolved for this run: normalized units, degrees)
+        # the odometry factor (loss.odometry_sigma as resolved for this run, sigma_t in normalized units; degrees)
         self.odometry_sigma = odometry_sigma if ordered and model.is_3d else None
         self.sensor: tuple | None = None  # curriculum cache: the fitted pinhole or polar beams; () = none fits
         self.use_chamfer = ordered and cfg.loss.chamfer_weight > 0
