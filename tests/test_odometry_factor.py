@@ -142,5 +142,7 @@ def test_3dtk_default_starts_from_the_pose_files_and_the_factor_holds_them(tmp_p
     run = json.loads((out / "run.json").read_text())
     assert run["odometry_sigma"] == list(AUTO_ODOMETRY_SIGMA)
     est = np.stack([read_frames(out / "frames" / f"scan{i:03d}.frames")[-1] for i in range(3)])
-    for t, r in _relative_to_slam6d(est, ref.gt_poses):  # excerpt: see the margins measured below
-        assert t < 0.05 and r < 1.0
+    # excerpt, seeds 0-4 with 1 and 2 threads: 0.4-2.2 cm, 0.35-0.84 deg (the odometry 0.4-1.7 cm,
+    # 0.71-0.78 deg; with no factor, seeds 0-2: 1.0-6.0 cm)
+    for t, r in _relative_to_slam6d(est, ref.gt_poses):
+        assert t < 0.05 and r < 1.5
