@@ -12,7 +12,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from deepmapping.api import AUTO_ODOMETRY_SIGMA, auto_warm_start, resolve_odometry_sigma
+from deepmapping.api import AUTO_ODOMETRY_FACTOR, AUTO_ODOMETRY_SIGMA, auto_warm_start, resolve_odometry_sigma
 from deepmapping.config import load_config
 from deepmapping.data import ScanSet
 from deepmapping.errors import ConfigError
@@ -58,19 +58,26 @@ def _scans(dim: int = 3, ordered: bool = True, init: bool = True, recorded: bool
     return s
 
 
-def test_auto_turns_the_factor_on_for_the_scans_own_recorded_poses_only():
+def test_auto_turns_the_factor_on_for_the_scans_own_recorded_poses_only(monkeypatch):
+    import deepmapping.methods.icp3d as icp3d
+
+    agreement = {"value": (0.2, 3.0)}  # ICP from the recorded poses moved them 20 cm, 3 deg
+    monkeypatch.setattr(icp3d, "odometry_agreement", lambda *a, **k: agreement["value"])
     cfg = load_config("default-3d")
     assert cfg.loss.odometry_sigma == "auto" and load_config("paper-3d").loss.odometry_sigma == "off"
     assert auto_warm_start(_scans()) == "file"  # 3D sequence with recorded poses (3DTK's .pose files)
     assert auto_warm_start(_scans(init=False)) == "icp-plane"
     assert auto_warm_start(_scans(ordered=False)) == "icp-plane"  # a set of views (the bunny): no sequence
     assert auto_warm_start(_scans(recorded=False)) == "icp-plane"  # poses someone computed or gave
-    assert resolve_odometry_sigma(_scans(recorded=False), over_file := load_config(
-        "default-3d", overrides={"warm_start.method": "file"})) is None  # a given start is not held
-    assert resolve_odometry_sigma(_scans(), over_file) == AUTO_ODOMETRY_SIGMA
-    assert resolve_odometry_sigma(_scans(), cfg) == AUTO_ODOMETRY_SIGMA
+    on = (AUTO_ODOMETRY_FACTOR * 0.2, AUTO_ODOMETRY_FACTOR * 3.0)  # held loosely: the scans disagree
+    assert on[0] > AUTO_ODOMETRY_SIGMA[0] and on[1] > AUTO_ODOMETRY_SIGMA[1]
+    assert resolve_odometry_sigma(_scans(), cfg) == pytest.approx(on)
+    agreement["value"] = (0.01, 0.1)  # ICP agrees: no tighter than AUTO_ODOMETRY_SIGMA
+    assert resolve_odometry_sigma(_scans(), cfg) == pytest.approx(AUTO_ODOMETRY_SIGMA)
+    agreement["value"] = (0.2, 3.0)
     over = lambda **o: load_config("default-3d", overrides=o)  # noqa: E731
-    assert resolve_odometry_sigma(_scans(), over(**{"warm_start.method": "file"})) == AUTO_ODOMETRY_SIGMA
+    assert resolve_odometry_sigma(_scans(), over(**{"warm_start.method": "file"})) == pytest.approx(on)
+    assert resolve_odometry_sigma(_scans(recorded=False), over(**{"warm_start.method": "file"})) is None
     assert resolve_odometry_sigma(_scans(), over(**{"warm_start.method": "icp-plane"})) is None
     assert resolve_odometry_sigma(_scans(), over(**{"warm_start.path": "given.txt", "warm_start.method": "file"})) is None
     assert resolve_odometry_sigma(_scans(init=False), cfg) is None
@@ -82,6 +89,20 @@ def test_auto_turns_the_factor_on_for_the_scans_own_recorded_poses_only():
     for bad in ([0.01], [0.0, 1.0], [float("nan"), 1.0], "on", [True, 1.0]):
         with pytest.raises(ConfigError, match="odometry_sigma"):
             over(**{"loss.odometry_sigma": bad})
+
+
+def test_the_agreement_of_recorded_poses_with_the_scans():
+    from deepmapping.io.threedtk import load_3dtk
+    from deepmapping.methods.icp3d import odometry_agreement
+
+    scans = load_3dtk(DATA / "3dtk")  # every point of the excerpt
+    clouds = [p[v] for p, v in zip(scans.points, scans.valid)]
+    trans, rot = odometry_agreement(clouds, scans.init_poses)
+    assert 0.01 < trans < 0.2 and 0.2 < rot < 3.0  # excerpt: 6.2 cm, 1.16 deg (ICP's own bias)
+    bad = scans.init_poses.copy()
+    bad[2] = bad[2] @ se3.from_rt(Rotation.from_rotvec([0.0, 0.1, 0.0]).as_matrix(), np.array([0.3, 0.0, 0.3]))
+    trans_bad, rot_bad = odometry_agreement(clouds, bad)
+    assert trans_bad > 2 * trans and rot_bad > 1.5 * rot  # a recorded pose off by 42 cm, 5.7 deg
 
 
 def test_the_3dtk_reader_marks_its_pose_files_as_recorded_poses(tmp_path):
@@ -140,7 +161,8 @@ def test_3dtk_default_starts_from_the_pose_files_and_the_factor_holds_them(tmp_p
     out = tmp_path / "run"
     ok(dm("register", DATA / "3dtk", "--out", out, "--no-plots", "--set", "threads=1"))
     run = json.loads((out / "run.json").read_text())
-    assert run["odometry_sigma"] == list(AUTO_ODOMETRY_SIGMA)
+    assert run["odometry_sigma"] == pytest.approx(list(resolve_odometry_sigma(load_3dtk(DATA / "3dtk"),
+                                                                             load_config("default-3d"))), rel=1e-6)
     est = np.stack([read_frames(out / "frames" / f"scan{i:03d}.frames")[-1] for i in range(3)])
     # excerpt, seeds 0-4 with 1 and 2 threads: 0.4-2.2 cm, 0.35-0.84 deg (the odometry 0.4-1.7 cm,
     # 0.71-0.78 deg; with no factor, seeds 0-2: 1.0-6.0 cm)

@@ -135,16 +135,23 @@ def auto_warm_start(scans: ScanSet) -> str:
     return "icp-planar" if scans.grid_shape is not None and scans.pose_dof == 3 else "icp-plane"
 
 
-# loss.odometry_sigma "auto" with the scans' own recorded poses as the warm start: [the scans' units
-# (metres), degrees] (docs/results.md: held the 3DTK sample within 3 cm of slam6D; in metres, not
-# map units, so that a small scene's odometry is not held harder than a large one's)
+# loss.odometry_sigma "auto" with the scans' own recorded poses as the warm start: [sigma_t (scan units:
+# metres), sigma_r (deg)] = the larger of AUTO_ODOMETRY_SIGMA and AUTO_ODOMETRY_FACTOR x how far
+# point-to-plane ICP from the recorded poses moves their relative motions (median): recorded poses
+# that the scans contradict are held loosely (docs/results.md: the 3DTK sample, 6.4 cm / 0.81 deg ->
+# [0.51 m, 10 deg]; a simulated odometry drifting 10 cm / 2 deg a step -> [1.5 m, 22 deg])
 AUTO_ODOMETRY_SIGMA = (0.5, 10.0)
+AUTO_ODOMETRY_FACTOR = 8.0
 
 
 def resolve_odometry_sigma(scans: ScanSet, cfg: Config) -> tuple[float, float] | None:
-    """loss.odometry_sigma for this run (None = no odometry factor): as given, or "auto" = on when
-    the warm start is the ordered 3D scans' own recorded poses (``ScanSet.recorded_poses``: the
-    loader read them with the data, as 3DTK's .pose files), off for every other start."""
+    """loss.odometry_sigma for this run (None = no odometry factor), [sigma_t (scan units), sigma_r
+    (deg)]: as given, or "auto" = on when the warm start is the ordered 3D scans' own recorded poses
+    (``ScanSet.recorded_poses``: the loader read them with the data, as 3DTK's .pose files), off for
+    every other start; its sigma from how well those poses agree with the scans
+    (AUTO_ODOMETRY_SIGMA, AUTO_ODOMETRY_FACTOR)."""
+    from deepmapping.methods.icp3d import odometry_agreement
+
     sigma = cfg.loss.odometry_sigma
     if sigma == "off" or not (scans.is_3d and scans.ordered):
         return None
@@ -152,7 +159,13 @@ def resolve_odometry_sigma(scans: ScanSet, cfg: Config) -> tuple[float, float] |
         return float(sigma[0]), float(sigma[1])
     ws = cfg.warm_start.method if cfg.warm_start.method != "auto" else auto_warm_start(scans)
     own = ws == "file" and cfg.warm_start.path is None and scans.recorded_poses and scans.init_poses is not None
-    return AUTO_ODOMETRY_SIGMA if own else None
+    if not own:
+        return None
+    clouds = [p[v] for p, v in zip(scans.points, scans.valid)]
+    trans, rot = odometry_agreement(clouds, scans.init_poses, cfg.icp.voxel_size,
+                                    cfg.icp.max_correspondence_distance, cfg.icp.max_iterations)
+    return (max(AUTO_ODOMETRY_SIGMA[0], AUTO_ODOMETRY_FACTOR * trans),
+            max(AUTO_ODOMETRY_SIGMA[1], AUTO_ODOMETRY_FACTOR * rot))
 
 
 def _read_init(path, is_3d: bool) -> np.ndarray:
@@ -264,7 +277,8 @@ def _train_here(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_pl
             return None
         return ate(frame.from_norm(poses_norm), scans.gt_poses) * scans.unit_scale
 
-    odometry_sigma = resolve_odometry_sigma(scans, cfg)  # the trainer works in the normalized frame
+    # worker 0's (ICP may differ in the last bits); the trainer works in the normalized frame
+    odometry_sigma = distributed.from_first(resolve_odometry_sigma(scans, cfg))
     odometry_norm = None if odometry_sigma is None else (odometry_sigma[0] / frame.scale, odometry_sigma[1])
     trainer = Trainer(cfg, model, valid, scans.ordered, evaluate, odometry_sigma=odometry_norm)
     trainer.extra = {"init_poses_input": init.tolist(), "frame": frame.to_dict(), "map_resolution": map_resolution}

@@ -97,9 +97,10 @@ class LossConfig(_Section):
     chamfer_window: int = Field(1, ge=0)  # N(i) = {i-w, ..., i+w} \ {i}
     # The odometry factor (3D ordered scans): the warm start's relative motion between temporal
     # neighbours as a soft constraint, mean over pairs of |dt / sigma_t|^2 + (dtheta / sigma_r)^2
-    # added to the loss; [sigma_t in the scans' units (metres), sigma_r in degrees]. "auto": [0.5, 10]
-    # when the warm start is the scans' own recorded poses (3DTK's .pose files), off for every other
-    # start (an ICP start's errors would be held); "off": never.
+    # added to the loss; [sigma_t in the scans' units (metres), sigma_r in degrees]. "auto": on when
+    # the warm start is the scans' own recorded poses (3DTK's .pose files), sigma at least [0.5, 10] and
+    # 8 x how far ICP from them moves their relative motions (api.resolve_odometry_sigma); off for every other start
+    # (an ICP start's errors would be held); "off": never.
     odometry_sigma: str | list[float] = "auto"
 
     @field_validator("odometry_sigma", mode="before")

@@ -26,7 +26,7 @@ from deepmapping.errors import ConfigError, InputError
 from deepmapping.geometry import se3
 from deepmapping.methods.open3d_utils import quiet_open3d, to_pcd
 
-__all__ = ["incremental_icp_3d", "check_clouds", "check_init", "Scales", "default_scales", "point_spacing",
+__all__ = ["incremental_icp_3d", "odometry_agreement", "check_clouds", "check_init", "Scales", "default_scales", "point_spacing",
            "prepare_clouds", "register_pair", "plausible"]
 
 MIN_POINTS = 10
@@ -184,3 +184,19 @@ def incremental_icp_3d(
         if progress is not None:
             progress(i + 1, k - 1)
     return poses
+
+
+def odometry_agreement(clouds, poses: np.ndarray, voxel_size: float | None = None,
+                       max_correspondence_distance: float | None = None,
+                       max_iterations: int = 50) -> tuple[float, float]:
+    """How far point-to-plane ICP, started from the relative motions of ``poses`` (a recorded
+    odometry), moves each of them: (median translation change (scan units), median rotation change
+    (deg)). Large when the recorded poses disagree with the scans."""
+    clouds = check_clouds(clouds)
+    poses = check_init(poses, len(clouds))
+    icp = incremental_icp_3d(clouds, "plane", poses, voxel_size, max_correspondence_distance, max_iterations)
+    change = [se3.relative(se3.relative(poses[i], poses[i + 1]), se3.relative(icp[i], icp[i + 1]))
+              for i in range(len(clouds) - 1)]
+    trans = float(np.median([np.linalg.norm(c[:3, 3]) for c in change]))
+    rot = float(np.median([se3.rotation_angle_deg(c[:3, :3]) for c in change]))
+    return trans, rot
