@@ -11,6 +11,14 @@ import torch  # noqa: E402
 torch.set_num_threads(THREADS)  # tests run in parallel (pytest -n 2): one thread each by default
 
 
+@pytest.fixture(autouse=True)
+def _torch_threads():
+    """Every test starts with THREADS torch threads: a run with ``threads`` set (register's cfg.threads)
+    changes the process's count, and a test after it in the same worker would otherwise inherit it
+    (seen: the kill -9 resume test with 2 threads, in a shuffled order, resumed on 1 thread)."""
+    torch.set_num_threads(THREADS)
+
+
 @pytest.fixture(scope="session")
 def indoor_map():
     from deepmapping.sim.maps import procedural_indoor_map
