@@ -12,7 +12,13 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from deepmapping.api import AUTO_ODOMETRY_FACTOR, AUTO_ODOMETRY_SIGMA, auto_warm_start, resolve_odometry_sigma
+from deepmapping.api import (
+    AUTO_ODOMETRY_FACTOR,
+    AUTO_ODOMETRY_GATE_DEG,
+    AUTO_ODOMETRY_SIGMA,
+    auto_warm_start,
+    resolve_odometry_sigma,
+)
 from deepmapping.config import load_config
 from deepmapping.data import ScanSet
 from deepmapping.errors import ConfigError
@@ -61,7 +67,7 @@ def _scans(dim: int = 3, ordered: bool = True, init: bool = True, recorded: bool
 def test_auto_turns_the_factor_on_for_the_scans_own_recorded_poses_only(monkeypatch):
     import deepmapping.methods.icp3d as icp3d
 
-    agreement = {"value": (0.2, 3.0)}  # ICP from the recorded poses moved them 20 cm, 3 deg
+    agreement = {"value": (0.2, 1.5)}  # ICP from the recorded poses moved them 20 cm, 1.5 deg
     monkeypatch.setattr(icp3d, "odometry_agreement", lambda *a, **k: agreement["value"])
     cfg = load_config("default-3d")
     assert cfg.loss.odometry_sigma == "auto" and load_config("paper-3d").loss.odometry_sigma == "off"
@@ -69,12 +75,14 @@ def test_auto_turns_the_factor_on_for_the_scans_own_recorded_poses_only(monkeypa
     assert auto_warm_start(_scans(init=False)) == "icp-plane"
     assert auto_warm_start(_scans(ordered=False)) == "icp-plane"  # a set of views (the bunny): no sequence
     assert auto_warm_start(_scans(recorded=False)) == "icp-plane"  # poses someone computed or gave
-    on = (AUTO_ODOMETRY_FACTOR * 0.2, AUTO_ODOMETRY_FACTOR * 3.0)  # held loosely: the scans disagree
+    on = (AUTO_ODOMETRY_FACTOR * 0.2, AUTO_ODOMETRY_FACTOR * 1.5)  # held loosely: the scans disagree
     assert on[0] > AUTO_ODOMETRY_SIGMA[0] and on[1] > AUTO_ODOMETRY_SIGMA[1]
     assert resolve_odometry_sigma(_scans(), cfg) == pytest.approx(on)
     agreement["value"] = (0.01, 0.1)  # ICP agrees: no tighter than AUTO_ODOMETRY_SIGMA
     assert resolve_odometry_sigma(_scans(), cfg) == pytest.approx(AUTO_ODOMETRY_SIGMA)
-    agreement["value"] = (0.2, 3.0)
+    agreement["value"] = (0.2, AUTO_ODOMETRY_GATE_DEG + 0.5)  # the scans contradict them: not held at all
+    assert resolve_odometry_sigma(_scans(), cfg) is None
+    agreement["value"] = (0.2, 1.5)
     over = lambda **o: load_config("default-3d", overrides=o)  # noqa: E731
     assert resolve_odometry_sigma(_scans(), over(**{"warm_start.method": "file"})) == pytest.approx(on)
     assert resolve_odometry_sigma(_scans(recorded=False), over(**{"warm_start.method": "file"})) is None
@@ -125,7 +133,7 @@ def test_each_training_step_adds_the_factor_to_eq4_and_eq7():
     torch.manual_seed(0)
     cfg = load_config("default-3d", overrides={"method": "direct", "optim.mnet_warmup_epochs": 0,
                                                "optim.mnet_warmup_steps": 0})
-    sigma = resolve_odometry_sigma(scans, cfg)
+    sigma = AUTO_ODOMETRY_SIGMA  # [m, deg]
     frame = Frame.from_scans(scans.points, scans.valid, scans.init_poses)
     model = DeepMappingModel(cfg, torch.as_tensor(scans.points / frame.scale, dtype=torch.float32),
                              torch.as_tensor(frame.to_norm(scans.init_poses), dtype=torch.float32),

@@ -142,14 +142,18 @@ def auto_warm_start(scans: ScanSet) -> str:
 # [0.51 m, 10 deg]; a simulated odometry drifting 10 cm / 2 deg a step -> [1.5 m, 22 deg])
 AUTO_ODOMETRY_SIGMA = (0.5, 10.0)
 AUTO_ODOMETRY_FACTOR = 8.0
+# ... and off when ICP turns the recorded relative motions by more than this (median, deg): the scans
+# contradict them (held-out: odometries ICP turned 2.4-2.8 deg ended better with no factor; those it
+# turned 0.8-1.0 deg, with it)
+AUTO_ODOMETRY_GATE_DEG = 2.0
 
 
 def resolve_odometry_sigma(scans: ScanSet, cfg: Config) -> tuple[float, float] | None:
     """loss.odometry_sigma for this run (None = no odometry factor), [sigma_t (scan units), sigma_r
     (deg)]: as given, or "auto" = on when the warm start is the ordered 3D scans' own recorded poses
     (``ScanSet.recorded_poses``: the loader read them with the data, as 3DTK's .pose files), off for
-    every other start; its sigma from how well those poses agree with the scans
-    (AUTO_ODOMETRY_SIGMA, AUTO_ODOMETRY_FACTOR)."""
+    every other start; its sigma from how well those poses agree with the scans, and off when the
+    scans contradict them (AUTO_ODOMETRY_SIGMA, AUTO_ODOMETRY_FACTOR, AUTO_ODOMETRY_GATE_DEG)."""
     from deepmapping.methods.icp3d import odometry_agreement
 
     sigma = cfg.loss.odometry_sigma
@@ -164,6 +168,8 @@ def resolve_odometry_sigma(scans: ScanSet, cfg: Config) -> tuple[float, float] |
     clouds = [p[v] for p, v in zip(scans.points, scans.valid)]
     trans, rot = odometry_agreement(clouds, scans.init_poses, cfg.icp.voxel_size,
                                     cfg.icp.max_correspondence_distance, cfg.icp.max_iterations)
+    if rot > AUTO_ODOMETRY_GATE_DEG:
+        return None
     return (max(AUTO_ODOMETRY_SIGMA[0], AUTO_ODOMETRY_FACTOR * trans),
             max(AUTO_ODOMETRY_SIGMA[1], AUTO_ODOMETRY_FACTOR * rot))
 
