@@ -283,8 +283,8 @@ def _train_here(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_pl
             return None
         return ate(frame.from_norm(poses_norm), scans.gt_poses) * scans.unit_scale
 
-    # worker 0's (ICP may differ in the last bits); the trainer works in the normalized frame
-    odometry_sigma = distributed.from_first(resolve_odometry_sigma(scans, cfg))
+    # worker 0's (its ICP check alone; ICP may differ in the last bits); the trainer works in the normalized frame
+    odometry_sigma = distributed.from_first(resolve_odometry_sigma(scans, cfg) if distributed.rank() == 0 else None)
     odometry_norm = None if odometry_sigma is None else (odometry_sigma[0] / frame.scale, odometry_sigma[1])
     trainer = Trainer(cfg, model, valid, scans.ordered, evaluate, odometry_sigma=odometry_norm)
     trainer.extra = {"init_poses_input": init.tolist(), "frame": frame.to_dict(), "map_resolution": map_resolution}

@@ -192,9 +192,8 @@ def odometry_agreement(clouds, poses: np.ndarray, voxel_size: float | None = Non
     """How far point-to-plane ICP, started from the relative motions of ``poses`` (a recorded
     odometry), moves each of them: (median translation change (scan units), median rotation change
     (deg)). Large when the recorded poses disagree with the scans."""
-    clouds = check_clouds(clouds)
-    poses = check_init(poses, len(clouds))
     icp = incremental_icp_3d(clouds, "plane", poses, voxel_size, max_correspondence_distance, max_iterations)
+    poses = np.asarray(poses, dtype=np.float64)  # checked by incremental_icp_3d
     change = [se3.relative(se3.relative(poses[i], poses[i + 1]), se3.relative(icp[i], icp[i + 1]))
               for i in range(len(clouds) - 1)]
     trans = float(np.median([np.linalg.norm(c[:3, 3]) for c in change]))

@@ -42,6 +42,17 @@ def _matrix(rot: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     return torch.cat([torch.cat([rot, t[..., :, None]], dim=-1), bottom], dim=-2)
 
 
+def inverse(m: torch.Tensor) -> torch.Tensor:
+    """(B, 4, 4) rigid transforms -> their inverses (as geometry.se3.inverse)."""
+    rot_t = m[:, :3, :3].transpose(1, 2)
+    return _matrix(rot_t, -(rot_t @ m[:, :3, 3:])[..., 0])
+
+
+def relative(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """a^-1 b for (B, 4, 4) poses: b in a's frame (as geometry.se3.relative)."""
+    return inverse(a) @ b
+
+
 def translation(t: torch.Tensor) -> torch.Tensor:
     """(B, 3) -> (B, 4, 4) pure translations."""
     return _matrix(torch.eye(3, dtype=t.dtype, device=t.device).expand(t.shape[0], 3, 3), t)

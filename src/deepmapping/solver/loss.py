@@ -7,6 +7,8 @@ import torch
 import torch.nn.functional as F
 from scipy.spatial import cKDTree
 
+from deepmapping.solver.geometry import relative
+
 # queries x targets per pair from which the nearest neighbours come from a k-d tree (SciPy) instead
 # of the full distance matrix: 3D scans (256 x 4800 on 80x60 depth images: 10x faster); the 2D
 # sizes (256 x 256 beams, 361 x 361 on CARMEN logs) keep the matrix, so their runs are unchanged
@@ -102,15 +104,6 @@ def chamfer_loss(glob: torch.Tensor, valid: torch.Tensor, indices: torch.Tensor,
     return chamfer(glob[a], valid[a], glob[b], valid[b], *q).mean()
 
 
-def _rigid_inverse(m: torch.Tensor) -> torch.Tensor:
-    rot_t = m[..., :3, :3].transpose(-1, -2)
-    out = torch.zeros_like(m)
-    out[..., :3, :3] = rot_t
-    out[..., :3, 3] = -(rot_t @ m[..., :3, 3:])[..., 0]
-    out[..., 3, 3] = 1.0
-    return out
-
-
 def odometry_factor(poses: torch.Tensor, prior: torch.Tensor, indices: torch.Tensor,
                     sigma_t: float, sigma_r_rad: float, first_below: int | None = None) -> torch.Tensor:
     """The odometry factor: each temporal neighbour pair (i, i+1) of the batch, the relative motion
@@ -123,7 +116,7 @@ def odometry_factor(poses: torch.Tensor, prior: torch.Tensor, indices: torch.Ten
         a, b = a[keep], b[keep]
     if a.numel() == 0:
         return poses.new_zeros(())
-    err = _rigid_inverse(_rigid_inverse(prior[a]) @ prior[b]) @ (_rigid_inverse(poses[a]) @ poses[b])
+    err = relative(relative(prior[a], prior[b]), relative(poses[a], poses[b]))
     eye = torch.eye(3, dtype=poses.dtype, device=poses.device)
     trans = (err[:, :3, 3] ** 2).sum(-1) / sigma_t ** 2
     rot = ((err[:, :3, :3] - eye) ** 2).sum((-1, -2)) / 2.0 / sigma_r_rad ** 2
