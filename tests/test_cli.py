@@ -248,6 +248,17 @@ def test_device_cuda_without_cuda_is_a_one_line_error(data16, tmp_path):
     assert_one_line_error(res, "cuda", out)
 
 
+def test_a_2d_only_map_on_3d_scans_is_a_one_line_error(data16, tmp_path):
+    folder = tmp_path / "clouds"
+    folder.mkdir()
+    for i in range(3):  # the 2D excerpt lifted to 3D clouds (z = 0.1 i)
+        xy = read_pcd(data16 / f"{i:03d}.pcd")[:, :2]
+        np.save(folder / f"{i:03d}.npy", np.c_[xy, np.full(len(xy), 0.1 * i)].astype(np.float32))
+    out = tmp_path / "Rgrid"
+    res = dm("register", folder, *TINY, "--set", "mnet.kind=grid", "--out", out)
+    assert_one_line_error(res, "mnet.kind", out)
+
+
 # ------------------------------------------------------------------------------------------
 # 3. reproducibility and saved config
 # ------------------------------------------------------------------------------------------

@@ -66,6 +66,7 @@ def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | 
     """
     scans.validate()
     cfg = config or load_config(resolve_profile("default", scans.is_3d))
+    check_settings(scans, cfg)
     t0 = time.perf_counter()
     if cfg.method in BASELINES:  # initial guesses only from a pose file (warm_start.method = "file")
         init = warm_start_poses(scans, cfg) if cfg.warm_start.method == "file" else None
@@ -84,6 +85,13 @@ def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | 
     result = _train(scans, cfg, init, t0, checkpoint, saved, on_log, on_epoch, on_place)
     result.timings = {"warm_start_s": warm_start_s, **result.timings}
     return result
+
+
+def check_settings(scans: ScanSet, cfg: Config) -> None:
+    """ConfigError for settings that do not fit the scans' kind (raised before any work or output)."""
+    if cfg.method in ("deepmapping", "direct") and scans.is_3d and cfg.mnet.kind == "grid":
+        raise ConfigError("mnet.kind = grid: the grid M-Net is for 2D scans only; 3D scans take fourier "
+                          "(default-3d), mlp or resmlp")
 
 
 BASELINES = CLASSICAL  # the classical methods (methods.registry): baselines and warm starts

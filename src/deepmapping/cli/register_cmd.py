@@ -6,7 +6,7 @@ import json
 import os
 from pathlib import Path
 
-from deepmapping.api import register, resolve_device
+from deepmapping.api import check_settings, register, resolve_device
 from deepmapping.cli.common import fail
 from deepmapping.cli.progress import console, progress_bar
 from deepmapping.config import load_config, resolve_profile
@@ -72,6 +72,7 @@ def run_register(data: Path, out: Path, cfg, fmt, gt, resume: bool, plots: bool 
         cfg = cfg.model_copy(update={"workers": int(os.environ["WORLD_SIZE"])})
     load_s = time.perf_counter() - t_load
 
+    check_settings(scans, cfg)
     if cfg.method in ("deepmapping", "direct"):
         resolve_device(cfg.device)
     info = {"data": str(data.resolve()), "format": fmt, "gt": str(Path(gt).resolve()) if gt else None,
