@@ -61,13 +61,14 @@ def assert_sane(cfg: Config) -> None:
     assert o.lr_final_factor >= 0 and o.checkpoint_every_s >= 0
     assert (o.max_time_s is None or o.max_time_s >= 0) and (o.early_stop_tol is None or o.early_stop_tol >= 0)
     assert lo.free_samples >= 0 and lo.near_hit_samples >= 0 and lo.near_hit_distance >= 0
-    assert lo.chamfer_weight >= 0 and lo.chamfer_window >= 0 and (lo.beams_per_scan is None or lo.beams_per_scan >= 1)
+    assert lo.chamfer_weight >= 0 and lo.chamfer_window >= 0 and (lo.beams_per_scan in (None, "auto") or lo.beams_per_scan >= 1)
     for v in (ic.voxel_size, ic.max_correspondence_distance, cfg.eval.voxel_size, cfg.eval.success_threshold):
         assert v is None or v > 0
     lc = cfg.loop
     assert ic.max_iterations >= 0 and lc.radius > 0 and lc.inlier_distance > 0 and lc.min_gap >= 1
     assert 0 <= lc.min_overlap <= 1 and all(s > 0 for s in lc.odometry_sigma)
-    assert min(ln.kernel_size, ln.dilation, ln.stride) >= 1 and ln.lr_factor >= 0 and mn.lr_factor >= 0
+    assert min(ln.kernel_size, ln.dilation) >= 1 and (ln.stride == "auto" or ln.stride >= 1)
+    assert ln.lr_factor >= 0 and mn.lr_factor >= 0
     assert all(c >= 1 for c in ln.conv_channels + ln.fc_channels + ln.point_channels + mn.hidden)
     assert min(mn.grid_levels, mn.grid_features, mn.grid_base, mn.grid_finest) >= 1 and mn.fourier_max_freq > 0
     assert 0 <= mn.coarse_to_fine <= 1 and mn.fourier_features >= 0 and ln.pose_input_freqs >= 0

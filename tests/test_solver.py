@@ -346,8 +346,8 @@ def test_fast_profile_is_the_default_with_cheaper_steps_and_refuses_3d_data():
 
     fast, default = load_config("fast"), load_config("default")
     assert (fast.loss.beams_per_scan, fast.loss.free_samples, fast.lnet.stride) == (32, 2, 2)
-    assert fast.loss.model_copy(update={"beams_per_scan": 64, "free_samples": 4}) == default.loss
-    assert fast.lnet.model_copy(update={"stride": 1}) == default.lnet
+    assert fast.loss.model_copy(update={"free_samples": 4, "beams_per_scan": "auto"}) == default.loss
+    assert fast.lnet.model_copy(update={"stride": "auto"}) == default.lnet
     assert fast.mnet == default.mnet and fast.optim == default.optim
     assert load_config("default-3d").lnet.stride == 2  # depth images keep their own cheap L-Net
     assert build_config("fast", None, "deepmapping", None, None, None, None, None, {}).profile == "fast"

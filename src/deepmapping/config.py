@@ -42,7 +42,9 @@ class LNetConfig(_Section):
     conv_channels: list[PosInt] = [64, 128, 1024]
     kernel_size: int = Field(3, ge=1)
     dilation: int = Field(2, ge=1)
-    stride: int = Field(1, ge=1)  # convolution stride (1 in the paper; >1 makes depth-image L-Nets cheap)
+    # convolution stride (1 in the paper; >1 makes the L-Net cheap); "auto": 2 for depth images and
+    # for scans of 128 beams or more, else 1 (solver.resolution.resolve_step)
+    stride: PosInt | Literal["auto"] = 1
     point_channels: list[PosInt] = [64, 128, 256, 1024]  # PointNet's shared MLP (supplementary A)
     # 3D: the L-Net's correction turns a scan about its sensor (as the paper) or about the
     # scan's centroid (better conditioned when the sensor is far from what it sees, e.g. the bunny)
@@ -92,7 +94,9 @@ class LossConfig(_Section):
     free_sampling: Literal["uniform", "stratified"] = "uniform"
     near_hit_samples: int = Field(0, ge=0)  # extra free-space samples on each beam just before its hit
     near_hit_distance: float = Field(0.02, ge=0)  # ... within this distance of the hit (normalized map units)
-    beams_per_scan: PosInt | None = None  # None = every beam each step; else a random subset
+    # None = every beam each step; else a random subset of this many; "auto": 32 for depth images and
+    # scans of 128 beams or more, else 64 (solver.resolution.resolve_step)
+    beams_per_scan: PosInt | Literal["auto"] | None = None
     chamfer_weight: float = Field(10.0, ge=0)  # lambda of eq. 6 (paper: 10 for 2D)
     chamfer_window: int = Field(1, ge=0)  # N(i) = {i-w, ..., i+w} \ {i}
     # The odometry factor (3D ordered scans): the warm start's relative motion between temporal

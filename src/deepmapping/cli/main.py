@@ -27,8 +27,8 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
 METHODS = " | ".join(m.label for m in METHODS_BY_NAME.values())  # the registry (methods.registry)
 PROFILE_HELP = (" | ".join(p for p in PROFILES if not p.endswith("-3d"))  # the files in src/deepmapping/profiles/
                 + ": default = fast path, paper = §4.1/§4.2 exactly, cold = --warm-start none, fast = 2D scans of "
-                "128+ beams (about 3x less training time), bunny = single objects scanned around; 3D data gets the "
-                "-3d variant. Each is a file in deepmapping/profiles/.")
+                "128+ beams (1.4x less training time than default, a little less accurate), bunny = single objects "
+                "scanned around; 3D data gets the -3d variant. Each is a file in deepmapping/profiles/.")
 
 
 @app.command(epilog="Examples:\n\n  deepmapping simulate data/traj0 --poses 256 --seed 3\n\n"

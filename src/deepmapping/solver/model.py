@@ -8,6 +8,7 @@ from torch import nn
 from deepmapping.config import Config
 from deepmapping.solver.geometry import compose, correction_matrix, translation
 from deepmapping.solver.networks import LNet, MNet
+from deepmapping.solver.resolution import resolve_step
 
 
 def fill_invalid(scans: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
@@ -38,7 +39,8 @@ class DeepMappingModel(nn.Module):
         dim = scans.shape[2]
         self.is_3d = init_poses.dim() == 3
         out_dim = 9 if (self.is_3d and pose_dof == 6) else 3
-        self.lnet = LNet(cfg.lnet, in_dim=dim, out_dim=out_dim, grid_shape=grid_shape)
+        lnet_cfg = resolve_step(cfg, scans.shape[1], grid_shape).lnet  # its stride "auto" made a number
+        self.lnet = LNet(lnet_cfg, in_dim=dim, out_dim=out_dim, grid_shape=grid_shape)
         self.mnet = MNet(cfg.mnet, in_dim=dim)
         self.register_buffer("scans", scans)
         lnet_in = scans if (grid_shape is not None or dim == 2 or valid is None) else fill_invalid(scans, valid)

@@ -17,6 +17,7 @@ from deepmapping.solver import curriculum, distributed
 from deepmapping.solver.geometry import transform
 from deepmapping.solver.loss import chamfer_loss, occupancy_bce, odometry_factor
 from deepmapping.solver.model import DeepMappingModel
+from deepmapping.solver.resolution import resolve_step
 from deepmapping.solver.sampling import free_space_fractions, free_space_points, near_hit_fractions, select_beams
 
 
@@ -77,6 +78,8 @@ class Trainer:
         self.odometry_sigma = odometry_sigma if ordered and model.is_3d else None
         self.sensor: tuple | None = None  # curriculum cache: the fitted pinhole or polar beams; () = none fits
         self.use_chamfer = ordered and cfg.loss.chamfer_weight > 0
+        # loss.beams_per_scan "auto" made a number (self.cfg stays as given: the checkpoint's settings)
+        self.beams_per_scan = resolve_step(cfg, valid.shape[1], model.lnet.grid_shape).loss.beams_per_scan
         self.evaluate = evaluate
         self.device = valid.device
         # each worker its own beam samples (worker 0, or one process: the seed itself)
@@ -87,7 +90,7 @@ class Trainer:
         self.reset_optimizer()
         k = valid.shape[0]
         # valid beams each scan gives eq. 4 per step (select_beams takes valid ones first): workers' weights
-        beams = cfg.loss.beams_per_scan or valid.shape[1]
+        beams = self.beams_per_scan or valid.shape[1]
         self.samples_per_scan = valid.sum(1).clamp(max=beams).cpu().numpy() if distributed.active() else None
         self.steps_per_epoch = len(epoch_batches(k, cfg.optim.batch_size, np.random.default_rng(0)))
         self.total_steps = cfg.optim.epochs * self.steps_per_epoch
@@ -128,7 +131,7 @@ class Trainer:
                 poses = self.model.poses(idx)
         else:
             poses = self.model.poses(idx)
-        pts, pv = select_beams(scans, valid, cfg.beams_per_scan, self.gen)
+        pts, pv = select_beams(scans, valid, self.beams_per_scan, self.gen)
         occ_global = transform(poses, pts)
         def mine(x: torch.Tensor) -> torch.Tensor:  # no slice at all in one process: the same graph as ever
             return x if own is None else x[:own]
