@@ -7,7 +7,7 @@ import torch
 from deepmapping.config import load_config
 from deepmapping.geometry import se2
 from deepmapping.solver import geometry, loss, sampling
-from deepmapping.solver.trainer import epoch_batches
+from deepmapping.solver.trainer import Trainer, epoch_batches
 
 
 def test_torch_geometry_matches_numpy():
@@ -353,3 +353,26 @@ def test_fast_profile_is_the_default_with_cheaper_steps_and_refuses_3d_data():
     assert build_config("fast", None, "deepmapping", None, None, None, None, None, {}).profile == "fast"
     with pytest.raises(ConfigError, match="2D scans"):
         build_config("fast", None, "deepmapping", None, None, None, None, None, {}, is_3d=True)
+
+
+def test_the_auto_step_follows_the_scans_length():
+    from deepmapping.solver.model import DeepMappingModel
+    from deepmapping.solver.resolution import LONG_SCAN_BEAMS, resolve_step
+
+    cfg = load_config("default")
+    assert (cfg.lnet.stride, cfg.loss.beams_per_scan) == ("auto", "auto")
+
+    def step(c):
+        return c.lnet.stride, c.loss.beams_per_scan
+
+    assert step(resolve_step(cfg, 256, None)) == step(resolve_step(cfg, LONG_SCAN_BEAMS, None)) == (2, 32)
+    assert step(resolve_step(cfg, LONG_SCAN_BEAMS - 1, None)) == (1, 64)  # short scans: the old step
+    assert step(resolve_step(cfg, 48, (8, 6))) == (2, 32)  # depth images: the cheap step
+    fixed = load_config("default", overrides={"lnet.stride": 3, "loss.beams_per_scan": 7})
+    assert step(resolve_step(fixed, 256, None)) == (3, 7)  # numbers stay as set
+    for beams, stride in ((256, 2), (64, 1)):  # the model builds its L-Net with the derived stride
+        model = DeepMappingModel(cfg, torch.zeros(2, beams, 2), torch.zeros(2, 3))
+        convs = [m for m in model.lnet.features if isinstance(m, torch.nn.Conv1d)]
+        assert convs and all(m.stride == (stride,) for m in convs)
+        trainer = Trainer(cfg, model, torch.ones(2, beams, dtype=torch.bool), ordered=True)
+        assert trainer.beams_per_scan == (32 if beams == 256 else 64) and trainer.cfg.loss.beams_per_scan == "auto"
