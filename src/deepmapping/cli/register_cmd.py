@@ -84,22 +84,31 @@ def run_register(data: Path, out: Path, cfg, fmt, gt, resume: bool, plots: bool 
     with folder_lock(make_folder(out)):  # a second command on this folder refuses (FolderBusy)
         write_config(out, cfg)
         write_json(out / "run.json", {"method": cfg.method, "status": "running", **info})
-        with progress_bar(not quiet) as cb:
-            try:
+        try:
+            with progress_bar(not quiet) as cb:
                 result = register(scans, cfg, checkpoint=out / "checkpoint.pt", resume=resume,
                                   on_log=cb.log, on_epoch=cb.epoch, on_icp_progress=cb.icp,
                                   on_place=cb.place)
-            except Interrupted:
-                console.print(f"[yellow]interrupted:[/] checkpoint saved; continue with "
-                              f"`deepmapping register {data} --out {out} --resume`")
-                raise SystemExit(130) from None
-        t_write = time.perf_counter()
-        write_run(out, scans, result, info, plots=plots)
+            t_write = time.perf_counter()
+            write_run(out, scans, result, info, plots=plots)
+        except (Interrupted, KeyboardInterrupt):  # in training, or before or after it
+            interrupted(data, out)
         reg = result.timings or {"registration_s": result.runtime_s}  # a baseline: one stage
         result.timings = {"load_s": load_s, **reg, "write_s": time.perf_counter() - t_write,
                           "peak_rss_mb": peak_rss_mb()}
         write_json(out / "run.json", json.loads((out / "run.json").read_text()) | {"timings": result.timings})
     return scans, result
+
+
+def interrupted(data: Path, out: Path) -> None:
+    """Ctrl-C: say how to go on from the checkpoint (training writes one when interrupted, and one
+    at its end, so Ctrl-C while the results are written resumes to writing them); exit 130."""
+    if (out / "checkpoint.pt").exists():
+        console.print(f"[yellow]interrupted:[/] checkpoint saved; continue with "
+                      f"`deepmapping register {data} --out {out} --resume`")
+    else:
+        console.print(f"[yellow]interrupted:[/] no checkpoint yet in {out}; run the command again")
+    raise SystemExit(130) from None
 
 
 def launched_worker() -> bool:
