@@ -67,6 +67,52 @@ def test_chamfer_distance_values_and_masks():
     assert xg.grad.abs().sum() > 0 and xg.grad[0, 2].abs().sum() == 0
 
 
+def test_point_to_plane_chamfer_ignores_sliding_along_the_surface():
+    # a noisy-free plane z = 0 and its copy moved 5 cm along it and 1 cm off it: point to plane sees
+    # only the 1 cm (both ways: 0.02), point to point sees the slide too; normals +-z, 0 at invalid points
+    rng = np.random.default_rng(0)
+    plane = np.c_[rng.uniform(-1, 1, (400, 2)), np.zeros(400)][None]
+    valid = np.ones((1, 400), bool)
+    valid[0, :10] = False
+    normals = loss.scan_normals(plane, valid)
+    assert np.allclose(np.abs(normals[0, 10:, 2]), 1.0) and not normals[0, :10].any()
+    x, v, n = torch.tensor(plane, dtype=torch.float32), torch.from_numpy(valid), torch.tensor(normals, dtype=torch.float32)
+    y = x + torch.tensor([0.05, 0.0, 0.01])
+    assert loss.chamfer(x, v, y, v, xn=n, yn=n).item() == pytest.approx(0.02, abs=1e-4)
+    assert loss.chamfer(x, v, y, v).item() > 0.05
+    # normals turned with the poses: a quarter turn about x takes +-z to -+y
+    quarter = torch.tensor([[[1.0, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]]])
+    assert torch.allclose(geometry.rotate(quarter, n[:, 10:11]).abs(), torch.tensor([[[0.0, 1.0, 0.0]]]))
+    # planar poses turn 2D normals by their heading only
+    turned = geometry.rotate(torch.tensor([[5.0, -3.0, np.pi / 2]]), torch.tensor([[[1.0, 0.0]]]))
+    assert torch.allclose(turned, torch.tensor([[[0.0, 1.0]]]), atol=1e-6)
+
+
+def test_the_trainer_measures_eq5_point_to_plane_when_asked():
+    # the same beams and neighbours (one seed): along the normal a distance is never longer, and the
+    # point-to-plane run trains (finite loss); 3 real 3DTK scans of the suite's excerpt, 200 points each
+    from pathlib import Path
+
+    from deepmapping.io.threedtk import load_3dtk
+    from deepmapping.solver.frame import Frame
+    from deepmapping.solver.model import DeepMappingModel
+
+    scans = load_3dtk(Path(__file__).parent / "data" / "3dtk", max_points=200)
+    frame = Frame.from_scans(scans.points, scans.valid, scans.init_poses)
+    chamfer = {}
+    for metric in ("point", "plane"):
+        cfg = load_config("default-3d", overrides={"method": "direct", "loss.chamfer_metric": metric})
+        model = DeepMappingModel(cfg, torch.as_tensor(scans.points / frame.scale, dtype=torch.float32),
+                                 torch.as_tensor(frame.to_norm(scans.init_poses), dtype=torch.float32),
+                                 valid=torch.as_tensor(scans.valid), pose_dof=6)
+        model.make_direct()
+        trainer = Trainer(cfg, model, torch.as_tensor(scans.valid), ordered=True)
+        assert (trainer.normals is None) == (metric == "point")
+        chamfer[metric] = float(trainer.loss(torch.arange(3))[1])
+        assert np.isfinite(trainer.step(np.arange(3))).all()
+    assert 0 < chamfer["plane"] < chamfer["point"]
+
+
 def test_nearest_index_kdtree_matches_the_distance_matrix(monkeypatch):
     # 3D-sized clouds take the k-d tree: the same neighbours as the full matrix, invalid targets
     # never chosen; a pair with no valid target and a NaN query do not raise

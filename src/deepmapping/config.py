@@ -99,6 +99,9 @@ class LossConfig(_Section):
     beams_per_scan: PosInt | Literal["auto"] | None = None
     chamfer_weight: float = Field(10.0, ge=0)  # lambda of eq. 6 (paper: 10 for 2D)
     chamfer_window: int = Field(1, ge=0)  # N(i) = {i-w, ..., i+w} \ {i}
+    # eq. 5's distance to the nearest point: "point" (the paper's), or "plane": along the nearest
+    # point's surface normal (normals from each scan's own 16 nearest points)
+    chamfer_metric: Literal["point", "plane"] = "point"
     # The odometry factor (3D ordered scans): the warm start's relative motion between temporal
     # neighbours as a soft constraint, mean over pairs of |dt / sigma_t|^2 + (dtheta / sigma_r)^2
     # added to the loss; [sigma_t in the scans' units (metres), sigma_r in degrees]. "auto": on when

@@ -36,6 +36,13 @@ def transform(poses: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     return torch.stack([gx, gy], dim=-1)
 
 
+def rotate(poses: torch.Tensor, vectors: torch.Tensor) -> torch.Tensor:
+    """Turn sensor-frame directions (B, N, D) (normals) with poses (B, 3) or (B, 4, 4): no translation."""
+    if poses.dim() == 3:
+        return vectors @ poses[:, :3, :3].transpose(1, 2)
+    return transform(torch.cat([torch.zeros_like(poses[:, :2]), poses[:, 2:]], 1), vectors)
+
+
 def _matrix(rot: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     bottom = torch.zeros(rot.shape[:-2] + (1, 4), dtype=rot.dtype, device=rot.device)
     bottom[..., 0, 3] = 1.0

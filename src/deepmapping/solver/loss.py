@@ -31,15 +31,21 @@ def occupancy_bce(occ_logits: torch.Tensor, occ_mask: torch.Tensor,
     return masked_mean(occ, occ_mask) + masked_mean(free, free_mask)
 
 
-def nearest_distance(q: torch.Tensor, qv: torch.Tensor, t: torch.Tensor, tv: torch.Tensor) -> torch.Tensor:
-    """Mean over valid queries q (P, n, D) of the distance to the nearest valid t (P, m, D) -> (P,).
+def nearest_distance(q: torch.Tensor, qv: torch.Tensor, t: torch.Tensor, tv: torch.Tensor,
+                     tn: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean over valid queries q (P, n, D) of the distance to the nearest valid t (P, m, D) -> (P,);
+    with t's unit normals tn (P, m, D): the distance along the nearest point's normal (point to plane).
 
     The neighbour is searched without gradient and the distance to it re-evaluated with
     gradient (same value and gradient as the minimum, 5x faster).
     """
     nn_idx = nearest_index(q, t, tv)
-    matched = t.gather(1, nn_idx[..., None].expand(-1, -1, t.shape[2]))
-    dist = ((q - matched).pow(2).sum(-1) + 1e-12).sqrt()
+    gather = nn_idx[..., None].expand(-1, -1, t.shape[2])
+    diff = q - t.gather(1, gather)
+    if tn is None:
+        dist = (diff.pow(2).sum(-1) + 1e-12).sqrt()
+    else:
+        dist = ((diff * tn.gather(1, gather)).sum(-1).pow(2) + 1e-12).sqrt()
     return (dist * qv).sum(1) / qv.sum(1).clamp(min=1)
 
 
@@ -65,17 +71,19 @@ def nearest_index(q: torch.Tensor, t: torch.Tensor, tv: torch.Tensor) -> torch.T
 
 def chamfer(x: torch.Tensor, xv: torch.Tensor, y: torch.Tensor, yv: torch.Tensor,
             xq: torch.Tensor | None = None, xqv: torch.Tensor | None = None,
-            yq: torch.Tensor | None = None, yqv: torch.Tensor | None = None) -> torch.Tensor:
+            yq: torch.Tensor | None = None, yqv: torch.Tensor | None = None,
+            xn: torch.Tensor | None = None, yn: torch.Tensor | None = None) -> torch.Tensor:
     """Eq. 5 for P pairs at once: x (P, N, D), y (P, M, D) with validity masks -> (P,).
 
     Two-way mean Euclidean distance to the nearest point of the other cloud; invalid points
     neither count nor serve as neighbours. Optional query subsets xq of x and yq of y (the
     beams sampled this step) estimate each mean from fewer points, against the full clouds.
+    With both clouds' unit normals xn, yn: each distance along the nearest point's normal.
     """
     xq, xqv = (x, xv) if xq is None else (xq, xqv)
     yq, yqv = (y, yv) if yq is None else (yq, yqv)
     has = (xv.any(1) & yv.any(1)).to(x.dtype)
-    return (nearest_distance(xq, xqv, y, yv) + nearest_distance(yq, yqv, x, xv)) * has
+    return (nearest_distance(xq, xqv, y, yv, yn) + nearest_distance(yq, yqv, x, xv, xn)) * has
 
 
 def temporal_pairs(indices: torch.Tensor, window: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -87,11 +95,12 @@ def temporal_pairs(indices: torch.Tensor, window: int) -> tuple[torch.Tensor, to
 
 def chamfer_loss(glob: torch.Tensor, valid: torch.Tensor, indices: torch.Tensor, window: int,
                  queries: torch.Tensor | None = None, queries_valid: torch.Tensor | None = None,
-                 first_below: int | None = None) -> torch.Tensor:
+                 first_below: int | None = None, normals: torch.Tensor | None = None) -> torch.Tensor:
     """Eq. 7 averaged over the neighbour pairs present in the batch (0 when there are none).
 
     glob (B, N, D): whole scans in the global frame; queries (B, n, D): optional subsets of them
-    whose distances to the neighbour's whole scan estimate the two means of eq. 5.
+    whose distances to the neighbour's whole scan estimate the two means of eq. 5; normals (B, N, D):
+    the scans' unit normals in the global frame, for point-to-plane distances.
     ``first_below``: only the pairs whose earlier scan is at a position below it (a worker's own scans).
     """
     a, b = temporal_pairs(indices, window)
@@ -101,7 +110,23 @@ def chamfer_loss(glob: torch.Tensor, valid: torch.Tensor, indices: torch.Tensor,
     if a.numel() == 0:
         return glob.new_zeros(())
     q = (None,) * 4 if queries is None else (queries[a], queries_valid[a], queries[b], queries_valid[b])
-    return chamfer(glob[a], valid[a], glob[b], valid[b], *q).mean()
+    n = (None, None) if normals is None else (normals[a], normals[b])
+    return chamfer(glob[a], valid[a], glob[b], valid[b], *q, *n).mean()
+
+
+def scan_normals(scans: np.ndarray, valid: np.ndarray, k: int = 16) -> np.ndarray:
+    """Unit normals (K, N, D) of scans (K, N, D), 2D or 3D: each valid point's direction of least
+    spread among its k nearest valid points of the same scan (PCA); 0 at invalid points."""
+    normals = np.zeros_like(scans)
+    for i in range(scans.shape[0]):
+        keep = np.flatnonzero(valid[i])
+        if keep.size < 3:
+            continue
+        pts = scans[i, keep]
+        nbr = pts[cKDTree(pts).query(pts, k=min(k, keep.size))[1]]  # (n, k, 3)
+        centred = nbr - nbr.mean(1, keepdims=True)
+        normals[i, keep] = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred))[1][:, :, 0]
+    return normals
 
 
 def odometry_factor(poses: torch.Tensor, prior: torch.Tensor, indices: torch.Tensor,

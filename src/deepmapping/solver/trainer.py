@@ -14,8 +14,8 @@ from deepmapping.config import Config
 from deepmapping.errors import Interrupted, TrainingError
 from deepmapping.solver import checkpoint as ckpt
 from deepmapping.solver import curriculum, distributed
-from deepmapping.solver.geometry import transform
-from deepmapping.solver.loss import chamfer_loss, occupancy_bce, odometry_factor
+from deepmapping.solver.geometry import rotate, transform
+from deepmapping.solver.loss import chamfer_loss, occupancy_bce, odometry_factor, scan_normals
 from deepmapping.solver.model import DeepMappingModel
 from deepmapping.solver.resolution import resolve_step
 from deepmapping.solver.sampling import free_space_fractions, free_space_points, near_hit_fractions, select_beams
@@ -78,6 +78,11 @@ class Trainer:
         self.odometry_sigma = odometry_sigma if ordered and model.is_3d else None
         self.sensor: tuple | None = None  # curriculum cache: the fitted pinhole or polar beams; () = none fits
         self.use_chamfer = ordered and cfg.loss.chamfer_weight > 0
+        # loss.chamfer_metric "plane": each scan's normals in its own frame, turned with its pose each step
+        self.normals = None
+        if self.use_chamfer and cfg.loss.chamfer_metric == "plane":
+            self.normals = torch.from_numpy(scan_normals(model.scans.cpu().numpy(), valid.cpu().numpy())).to(
+                model.scans.device)
         # loss.beams_per_scan "auto" made a number (self.cfg stays as given: the checkpoint's settings)
         self.beams_per_scan = resolve_step(cfg, valid.shape[1], model.lnet.grid_shape).loss.beams_per_scan
         self.evaluate = evaluate
@@ -150,7 +155,9 @@ class Trainer:
         if not self.use_chamfer:
             return bce, bce.new_zeros(()), odo
         # the beams sampled for eq. 4 are also the Chamfer queries (all beams in the paper profile)
-        return bce, chamfer_loss(transform(poses, scans), valid, idx, cfg.chamfer_window, occ_global, pv, own), odo
+        normals = None if self.normals is None else rotate(poses, self.normals[idx])
+        return bce, chamfer_loss(transform(poses, scans), valid, idx, cfg.chamfer_window, occ_global, pv, own,
+                                 normals=normals), odo
 
     def step(self, idx: np.ndarray, lr: float | None = None) -> tuple[float, float, float]:
         """One optimizer step on the scans ``idx``; ``lr``: a constant rate instead of the schedule."""
