@@ -105,9 +105,9 @@ def interrupted(data: Path, out: Path) -> None:
     at its end, so Ctrl-C while the results are written resumes to writing them); exit 130."""
     if (out / "checkpoint.pt").exists():
         console.print(f"[yellow]interrupted:[/] checkpoint saved; continue with "
-                      f"`deepmapping register {data} --out {out} --resume`")
+                      f"`deepmapping register {data} --out {out} --resume`", soft_wrap=True)  # one line: copyable
     else:
-        console.print(f"[yellow]interrupted:[/] no checkpoint yet in {out}; run the command again")
+        console.print(f"[yellow]interrupted:[/] no checkpoint yet in {out}; run the command again", soft_wrap=True)
     raise SystemExit(130) from None
 
 
