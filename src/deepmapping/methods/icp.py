@@ -14,22 +14,9 @@ from scipy.spatial import cKDTree
 
 from deepmapping.geometry import se2
 from deepmapping.geometry.alignment import rigid_align
+from deepmapping.geometry.normals import pca_normals
 
-__all__ = ["icp_2d", "incremental_icp", "estimate_normals_2d", "overlap"]
-
-
-def estimate_normals_2d(points: np.ndarray, k: int = 6, tree: cKDTree | None = None) -> np.ndarray:
-    """Unit normals (M, 2) from PCA of each point's k nearest neighbours (itself included)."""
-    pts = np.asarray(points, dtype=np.float64)
-    m = pts.shape[0]
-    k = int(min(max(k, 2), m))
-    tree = cKDTree(pts) if tree is None else tree
-    _, idx = tree.query(pts, k=k)
-    nb = pts[idx.reshape(m, k)]  # (M, k, 2)
-    nb = nb - nb.mean(axis=1, keepdims=True)
-    cov = np.einsum("mki,mkj->mij", nb, nb)
-    _, vecs = np.linalg.eigh(cov)  # ascending eigenvalues
-    return vecs[:, :, 0]
+__all__ = ["icp_2d", "incremental_icp", "overlap"]
 
 
 def _clean(points, name: str) -> np.ndarray:
@@ -85,7 +72,7 @@ def icp_2d(
     spacing = float(np.median(spacing_d[:, 1]))
     scale = float(np.sqrt(np.mean(np.sum((tgt - tgt.mean(0)) ** 2, axis=1)))) or 1.0
     floor = 2.0 * spacing
-    normals = estimate_normals_2d(tgt, normal_k, tree) if method == "plane" else None
+    normals = pca_normals(tgt, normal_k, tree) if method == "plane" else None
 
     def correspond(p):
         moved = se2.transform_points(p, src)

@@ -22,7 +22,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from deepmapping.geometry import se2
-from deepmapping.methods.icp import estimate_normals_2d, icp_2d
+from deepmapping.geometry.normals import pca_normals
+from deepmapping.methods.icp import icp_2d
 from deepmapping.methods.pose_graph_2d import Edge, optimize_pose_graph
 
 __all__ = ["close_loops"]
@@ -147,6 +148,6 @@ def _constraint(src, target, tree, pose, distance) -> float:
     ok = np.isfinite(d)
     if ok.sum() < 3:
         return 0.0
-    n = estimate_normals_2d(target, 6, tree)[j[ok]]
+    n = pca_normals(target, 6, tree)[j[ok]]
     ev = np.linalg.eigvalsh(n.T @ n / len(n))
     return float(ev[0] / max(ev[1], 1e-12))

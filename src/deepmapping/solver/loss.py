@@ -7,6 +7,7 @@ import torch
 import torch.nn.functional as F
 from scipy.spatial import cKDTree
 
+from deepmapping.geometry.normals import pca_normals
 from deepmapping.solver.geometry import relative
 
 # queries x targets per pair from which the nearest neighbours come from a k-d tree (SciPy) instead
@@ -122,10 +123,7 @@ def scan_normals(scans: np.ndarray, valid: np.ndarray, k: int = 16) -> np.ndarra
         keep = np.flatnonzero(valid[i])
         if keep.size < 3:
             continue
-        pts = scans[i, keep]
-        nbr = pts[cKDTree(pts).query(pts, k=min(k, keep.size))[1]]  # (n, k, 3)
-        centred = nbr - nbr.mean(1, keepdims=True)
-        normals[i, keep] = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred))[1][:, :, 0]
+        normals[i, keep] = pca_normals(scans[i, keep], k)
     return normals
 
 
