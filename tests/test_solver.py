@@ -7,7 +7,7 @@ import torch
 from deepmapping.config import load_config
 from deepmapping.geometry import se2
 from deepmapping.solver import geometry, loss, sampling
-from deepmapping.solver.trainer import Trainer, epoch_batches
+from deepmapping.solver.trainer import Trainer, epoch_batches, place_batches
 
 
 def test_torch_geometry_matches_numpy():
@@ -143,6 +143,30 @@ def test_batches_partition_scans_and_cover_every_neighbour_pair():
             a, c = loss.temporal_pairs(torch.as_tensor(b), 1)
             pairs |= {(int(b[i]), int(b[j])) for i, j in zip(a, c)}
     assert pairs == {(i, i + 1) for i in range(k - 1)}
+
+
+def test_random_and_place_batches_partition_scans():
+    k = 40
+    places = np.r_[np.zeros((20, 2)), np.full((20, 2), 10.0)] + np.random.default_rng(1).normal(0, 0.1, (k, 2))
+    for epoch in range(5):
+        rng = np.random.default_rng([0, epoch])
+        rand = epoch_batches(k, 8, rng, "random")
+        place = place_batches(places, 10, rng)
+        for blocks in (rand, place):
+            assert sorted(np.concatenate(blocks).tolist()) == list(range(k))
+        # two places 10 apart, 20 scans each: every batch of 10 holds scans of one place only
+        assert all(len(set((b >= 20).tolist())) == 1 for b in place) and len(place) == 4
+
+
+def test_truncated_chamfer_counts_far_points_as_the_bound():
+    x = torch.tensor([[[0.0, 0.0], [1.0, 0.0], [5.0, 0.0]]], requires_grad=True)
+    y = torch.tensor([[[0.0, 0.1], [1.0, 0.1]]])
+    xv, yv = torch.ones(1, 3, dtype=torch.bool), torch.ones(1, 2, dtype=torch.bool)
+    # x->y: 0.1, 0.1, and 0.5 instead of ~4.0; y->x: 0.1, 0.1
+    assert loss.chamfer(x, xv, y, yv, truncate=0.5).item() == pytest.approx(0.7 / 3 + 0.1, abs=1e-5)
+    assert loss.chamfer(x, xv, y, yv).item() > 1.0
+    loss.chamfer(x, xv, y, yv, truncate=0.5).sum().backward()
+    assert x.grad[0, 2].abs().sum() == 0 and x.grad[0, :2].abs().sum() > 0
 
 
 def _fit_mnet_bce(scans, poses, steps=150):

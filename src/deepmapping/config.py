@@ -102,6 +102,9 @@ class LossConfig(_Section):
     # eq. 5's distance to the nearest point: "point" (the paper's), or "plane": along the nearest
     # point's surface normal (normals from each scan's own 16 nearest points)
     chamfer_metric: Literal["point", "plane"] = "point"
+    # None: every distance counts (the paper's); a number t: a point whose nearest neighbour is further than
+    # t x the scans' median point spacing counts t x that spacing (no gradient): parts seen by one scan only
+    chamfer_truncate: float | None = Field(None, gt=0)
     # The odometry factor (3D ordered scans): the warm start's relative motion between temporal
     # neighbours as a soft constraint, mean over pairs of |dt / sigma_t|^2 + (dtheta / sigma_r)^2
     # added to the loss; [sigma_t in the scans' units (metres), sigma_r in degrees]. "auto": on when
@@ -124,6 +127,10 @@ class LossConfig(_Section):
 class OptimConfig(_Section):
     lr: float = Field(1e-3, gt=0)
     batch_size: int = Field(128, ge=1)
+    # "contiguous": blocks of consecutive scans (temporal neighbours together); "random": any scans together;
+    # "place": scans that see the same place together (trainer.place_batches; with loss.chamfer_window >=
+    # the scan count, the Chamfer term over every pair a batch holds)
+    batch_order: Literal["contiguous", "random", "place"] = "contiguous"
     epochs: int = Field(3000, ge=0)
     max_time_s: NonNegFloat | None = None  # stop after this much wall time (None = no limit)
     mnet_warmup_epochs: int = Field(0, ge=0)  # first epochs train the M-Net only (poses held at the warm start)

@@ -33,7 +33,7 @@ def occupancy_bce(occ_logits: torch.Tensor, occ_mask: torch.Tensor,
 
 
 def nearest_distance(q: torch.Tensor, qv: torch.Tensor, t: torch.Tensor, tv: torch.Tensor,
-                     tn: torch.Tensor | None = None) -> torch.Tensor:
+                     tn: torch.Tensor | None = None, truncate: float | None = None) -> torch.Tensor:
     """Mean over valid queries q (P, n, D) of the distance to the nearest valid t (P, m, D) -> (P,);
     with t's unit normals tn (P, m, D): the distance along the nearest point's normal (point to plane).
 
@@ -43,10 +43,10 @@ def nearest_distance(q: torch.Tensor, qv: torch.Tensor, t: torch.Tensor, tv: tor
     nn_idx = nearest_index(q, t, tv)
     gather = nn_idx[..., None].expand(-1, -1, t.shape[2])
     diff = q - t.gather(1, gather)
-    if tn is None:
-        dist = (diff.pow(2).sum(-1) + 1e-12).sqrt()
-    else:
-        dist = ((diff * tn.gather(1, gather)).sum(-1).pow(2) + 1e-12).sqrt()
+    point = (diff.pow(2).sum(-1) + 1e-12).sqrt()
+    dist = point if tn is None else ((diff * tn.gather(1, gather)).sum(-1).pow(2) + 1e-12).sqrt()
+    if truncate is not None:  # a query without a neighbour within ``truncate`` counts ``truncate``, no gradient
+        dist = torch.where(point.detach() <= truncate, dist, dist.new_full((), truncate))
     return (dist * qv).sum(1) / qv.sum(1).clamp(min=1)
 
 
@@ -73,7 +73,8 @@ def nearest_index(q: torch.Tensor, t: torch.Tensor, tv: torch.Tensor) -> torch.T
 def chamfer(x: torch.Tensor, xv: torch.Tensor, y: torch.Tensor, yv: torch.Tensor,
             xq: torch.Tensor | None = None, xqv: torch.Tensor | None = None,
             yq: torch.Tensor | None = None, yqv: torch.Tensor | None = None,
-            xn: torch.Tensor | None = None, yn: torch.Tensor | None = None) -> torch.Tensor:
+            xn: torch.Tensor | None = None, yn: torch.Tensor | None = None,
+            truncate: float | None = None) -> torch.Tensor:
     """Eq. 5 for P pairs at once: x (P, N, D), y (P, M, D) with validity masks -> (P,).
 
     Two-way mean Euclidean distance to the nearest point of the other cloud; invalid points
@@ -84,7 +85,7 @@ def chamfer(x: torch.Tensor, xv: torch.Tensor, y: torch.Tensor, yv: torch.Tensor
     xq, xqv = (x, xv) if xq is None else (xq, xqv)
     yq, yqv = (y, yv) if yq is None else (yq, yqv)
     has = (xv.any(1) & yv.any(1)).to(x.dtype)
-    return (nearest_distance(xq, xqv, y, yv, yn) + nearest_distance(yq, yqv, x, xv, xn)) * has
+    return (nearest_distance(xq, xqv, y, yv, yn, truncate) + nearest_distance(yq, yqv, x, xv, xn, truncate)) * has
 
 
 def temporal_pairs(indices: torch.Tensor, window: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -96,7 +97,8 @@ def temporal_pairs(indices: torch.Tensor, window: int) -> tuple[torch.Tensor, to
 
 def chamfer_loss(glob: torch.Tensor, valid: torch.Tensor, indices: torch.Tensor, window: int,
                  queries: torch.Tensor | None = None, queries_valid: torch.Tensor | None = None,
-                 first_below: int | None = None, normals: torch.Tensor | None = None) -> torch.Tensor:
+                 first_below: int | None = None, normals: torch.Tensor | None = None,
+                 truncate: float | None = None) -> torch.Tensor:
     """Eq. 7 averaged over the neighbour pairs present in the batch (0 when there are none).
 
     glob (B, N, D): whole scans in the global frame; queries (B, n, D): optional subsets of them
@@ -112,7 +114,7 @@ def chamfer_loss(glob: torch.Tensor, valid: torch.Tensor, indices: torch.Tensor,
         return glob.new_zeros(())
     q = (None,) * 4 if queries is None else (queries[a], queries_valid[a], queries[b], queries_valid[b])
     n = (None, None) if normals is None else (normals[a], normals[b])
-    return chamfer(glob[a], valid[a], glob[b], valid[b], *q, *n).mean()
+    return chamfer(glob[a], valid[a], glob[b], valid[b], *q, *n, truncate=truncate).mean()
 
 
 def scan_normals(scans: np.ndarray, valid: np.ndarray, k: int = 16) -> np.ndarray:

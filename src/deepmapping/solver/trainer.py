@@ -12,6 +12,7 @@ import torch
 
 from deepmapping.config import Config
 from deepmapping.errors import Interrupted, TrainingError
+from deepmapping.methods.icp3d import point_spacing
 from deepmapping.solver import checkpoint as ckpt
 from deepmapping.solver import curriculum, distributed
 from deepmapping.solver.geometry import rotate, transform
@@ -59,14 +60,37 @@ def loss_plateau(losses: list, window: int, min_improvement: float) -> bool:
     return before - last < min_improvement * abs(before)
 
 
-def epoch_batches(num_scans: int, batch: int, rng: np.random.Generator) -> list[np.ndarray]:
+def epoch_batches(num_scans: int, batch: int, rng: np.random.Generator, order: str = "contiguous") -> list[np.ndarray]:
     """Contiguous blocks of scans (temporal neighbours stay together for the Chamfer term),
-    cut at a random offset each epoch so every neighbour pair is seen, in random order."""
+    cut at a random offset each epoch so every neighbour pair is seen, in random order;
+    ``order`` "random": blocks of a random permutation (each sorted)."""
     batch = min(batch, num_scans)
+    if order == "random":
+        perm = rng.permutation(num_scans)
+        return [np.sort(perm[a:a + batch]) for a in range(0, num_scans, batch)]
     offset = int(rng.integers(0, batch))
     cuts = [0] + list(range(offset or batch, num_scans, batch)) + [num_scans]
     blocks = [np.arange(a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
     return [blocks[i] for i in rng.permutation(len(blocks))]
+
+
+def place_batches(places: np.ndarray, batch: int, rng: np.random.Generator) -> list[np.ndarray]:
+    """Scans grouped by place (``places`` (K, F): where each scan is and what it sees): anchors in
+    random order, each batch an anchor with the ``batch`` - 1 scans nearest to it that no batch of
+    this epoch holds yet; every scan once an epoch, as with contiguous blocks."""
+    k = len(places)
+    batch = min(batch, k)
+    free = np.ones(k, dtype=bool)
+    out = []
+    for a in rng.permutation(k):
+        if not free[a]:
+            continue
+        free[a] = False
+        cand = np.flatnonzero(free)
+        near = cand[np.argsort(np.linalg.norm(places[cand] - places[a], axis=1), kind="stable")[: batch - 1]]
+        free[near] = False
+        out.append(np.sort(np.concatenate([[a], near])))
+    return out
 
 
 class Trainer:
@@ -83,6 +107,10 @@ class Trainer:
         if self.use_chamfer and cfg.loss.chamfer_metric == "plane":
             self.normals = torch.from_numpy(scan_normals(model.scans.cpu().numpy(), valid.cpu().numpy())).to(
                 model.scans.device)
+        self.truncate = None
+        if self.use_chamfer and cfg.loss.chamfer_truncate is not None:
+            spacing = point_spacing([s[v] for s, v in zip(model.scans.cpu().numpy(), valid.cpu().numpy())])
+            self.truncate = cfg.loss.chamfer_truncate * spacing
         # loss.beams_per_scan "auto" made a number (self.cfg stays as given: the checkpoint's settings)
         self.beams_per_scan = resolve_step(cfg, valid.shape[1], model.lnet.grid_shape).loss.beams_per_scan
         self.evaluate = evaluate
@@ -92,6 +120,7 @@ class Trainer:
             (cfg.seed + distributed.rank() * distributed.RANK_SEED_STRIDE) % 2**64)
         self._step_loss: tuple[tuple, torch.nn.Module] | None = None  # (what it was built for, the loss module)
         self.use_curriculum = curriculum.enabled(cfg, model, ordered)
+        self._place_cache: np.ndarray | None = None  # optim.batch_order "place": Trainer._places
         self.reset_optimizer()
         k = valid.shape[0]
         # valid beams each scan gives eq. 4 per step (select_beams takes valid ones first): workers' weights
@@ -157,7 +186,7 @@ class Trainer:
         # the beams sampled for eq. 4 are also the Chamfer queries (all beams in the paper profile)
         normals = None if self.normals is None else rotate(poses, self.normals[idx])
         return bce, chamfer_loss(transform(poses, scans), valid, idx, cfg.chamfer_window, occ_global, pv, own,
-                                 normals=normals), odo
+                                 normals=normals, truncate=self.truncate), odo
 
     def step(self, idx: np.ndarray, lr: float | None = None) -> tuple[float, float, float]:
         """One optimizer step on the scans ``idx``; ``lr``: a constant rate instead of the schedule."""
@@ -289,11 +318,25 @@ class Trainer:
         self._anneal_mnet()
         rng = np.random.default_rng([self.cfg.seed, self.state.epoch])
         sums = np.zeros(3)
-        batches = epoch_batches(self.valid.shape[0], self.cfg.optim.batch_size, rng)
+        if self.cfg.optim.batch_order == "place":
+            batches = place_batches(self._places(), self.cfg.optim.batch_size, rng)
+        else:
+            batches = epoch_batches(self.valid.shape[0], self.cfg.optim.batch_size, rng, self.cfg.optim.batch_order)
         self._epoch_warmup = self.mnet_warmup_now()  # its loss is not the stopping rule's
         for idx in batches:
             sums += self.step(idx)
         return sums / len(batches)
+
+    def _places(self) -> np.ndarray:
+        """Each scan's sensor position and the centre of its points, in the global frame, from the
+        poses of the model now (recomputed every optim.eval_every epochs)."""
+        if self._place_cache is None or self.state.epoch % self.cfg.optim.eval_every == 0:
+            v = self.valid.to(self.model.scans.dtype)[..., None]
+            centre = (self.model.scans * v).sum(1, keepdim=True) / v.sum(1, keepdim=True).clamp(min=1)
+            poses = self.model.all_poses()
+            sensor = transform(poses, torch.zeros_like(centre))
+            self._place_cache = torch.cat([sensor, transform(poses, centre)], -1)[:, 0].cpu().numpy()
+        return self._place_cache
 
     def _after_epoch(self, mean: np.ndarray, on_log) -> bool:
         """Log when due; whether training ends here (last epoch, time budget, early stop)."""
