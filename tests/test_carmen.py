@@ -11,11 +11,12 @@ from typer.testing import CliRunner
 
 from deepmapping.cli.main import app
 from deepmapping.errors import ConfigError, InputError
-from deepmapping.evaluation.relations import Relations, read_relations, score_relations
+from deepmapping.evaluation.relations import Relations, derive_relations, read_relations, score_relations
 from deepmapping.geometry import se2
 from deepmapping.io.carmen import match_scans, read_carmen
 from deepmapping.io.loaders import detect_format, load_scans
 from deepmapping.io.poses3d import read_tum_poses, write_tum_poses
+from deepmapping.io.relations import relations_from_corrected, write_relations
 from deepmapping.sequence import nearest_keyframe, poses_for_all_scans, select_keyframes
 
 CARMEN = Path(__file__).resolve().parent / "data" / "carmen"  # excerpts (tests/data/make_excerpts.py)
@@ -249,3 +250,49 @@ def test_cli_register_log_writes_every_scan(intel_excerpt, tmp_path):
     res = CliRunner().invoke(app, ["evaluate", str(out)])
     assert res.exit_code == 0, res.output
     assert json.loads((out / "metrics.json").read_text())["relations"] == m
+
+
+def test_derive_relations_like_the_benchmark():
+    """Pairs at most near_m apart, 40 % of them over 10 s when there are enough, sorted in time;
+    the trajectory they come from scores 0 on them, a moved scan does not."""
+    rng = np.random.default_rng(3)
+    t = np.arange(400) * 0.5  # a loop of 200 s driven twice: positions repeat after 100 s
+    ang = 2 * np.pi * t / 100.0
+    poses = np.c_[5 * np.cos(ang), 5 * np.sin(ang), ang + np.pi / 2] + rng.normal(0, 0.01, (400, 3))
+    stamps = [f"{v:.6f}" for v in 1000.0 + t]
+    rel = derive_relations(stamps, poses, near_m=1.0, count=500, seed=0)
+    assert len(rel) == 500 and (rel.span_s() > 10).sum() == 200
+    i = np.array([stamps.index(s) for s in rel.stamp_i])
+    j = np.array([stamps.index(s) for s in rel.stamp_j])
+    assert (t[j] >= t[i]).all() and (np.linalg.norm(poses[i, :2] - poses[j, :2], axis=1) <= 1.0).all()
+    assert score_relations(rel, stamps, poses)["all"]["trans_mean_m"] < 1e-9
+    moved = poses.copy()
+    moved[250:, 0] += 0.3
+    s = score_relations(rel, stamps, moved)
+    assert s["long"]["trans_mean_m"] > 0.05 and s["unmatched"] == 0
+    again = derive_relations(stamps, poses, near_m=1.0, count=500, seed=0)
+    assert again.stamp_i == rel.stamp_i and again.stamp_j == rel.stamp_j
+    few = derive_relations(stamps[:30], poses[:30], near_m=1.0, count=500)  # 15 s: few long pairs, all kept
+    assert 0 < len(few) < 500
+    with pytest.raises(InputError, match="timestamps for"):
+        derive_relations(stamps[:3], poses[:2])
+
+
+def test_relations_from_a_corrected_log_scored_with_gt(tmp_path):
+    """The fr079 excerpt's corrected log: relations at the raw log's timestamps, written in the
+    benchmark's format, read back, and taken by register/evaluate as --gt FILE.relations."""
+    rel = relations_from_corrected(CARMEN / "corrected" / "freiburg-079-corrected.log.gz", CARMEN / "fr079.clf.gz")
+    raw = read_carmen(CARMEN / "fr079.clf.gz")
+    assert 1000 <= len(rel) <= 3000 and set(rel.stamp_i) <= set(raw.stamps)
+    path = tmp_path / "fr079-derived.relations"
+    write_relations(path, rel)
+    back = read_relations(path)
+    assert back.stamp_i == rel.stamp_i and np.abs(back.motion - rel.motion).max() < 1e-6
+    odo = score_relations(back, raw.stamps, raw.poses)
+    assert odo["unmatched"] == 0 and odo["all"]["trans_mean_m"] > 0.1  # raw odometry is off on them
+    scans = load_scans(CARMEN / "fr079.clf.gz", gt_path=path, keyframes="every:20")
+    assert scans.sequence.relations_path == str(path)
+    with pytest.raises(InputError, match="none.relations: file not found"):
+        load_scans(CARMEN / "fr079.clf.gz", gt_path=tmp_path / "none.relations")
+    with pytest.raises(InputError, match="scans found in"):
+        relations_from_corrected(CARMEN / "corrected" / "freiburg-079-corrected.log.gz", CARMEN / "intel.clf.gz")

@@ -18,7 +18,7 @@ import numpy as np
 from deepmapping.errors import InputError
 from deepmapping.geometry import se2
 
-__all__ = ["Relations", "read_relations", "relation_errors", "score_relations", "LONG_RELATION_S"]
+__all__ = ["Relations", "read_relations", "relation_errors", "score_relations", "derive_relations", "LONG_RELATION_S"]
 
 LONG_RELATION_S = 10.0  # relations spanning more than this are (mostly) loop closures
 
@@ -93,3 +93,31 @@ def score_relations(relations: Relations, stamps: list[str], poses: np.ndarray) 
     long = relations.span_s()[matched] > LONG_RELATION_S
     return {"relations": len(relations), "unmatched": int((~matched).sum()),
             "all": _stats(trans, rot), "short": _stats(trans[~long], rot[~long]), "long": _stats(trans[long], rot[long])}
+
+
+def derive_relations(stamps: list[str], poses: np.ndarray, near_m: float = 1.0, count: int = 3000,
+                     long_share: float = 0.4, seed: int = 0) -> Relations:
+    """Relations from a reference trajectory (``poses`` (S, 3) at ``stamps``) for a log without the
+    benchmark's file, made like the benchmark's: pairs of scans whose reference positions are at
+    most ``near_m`` apart (intel's and fr079's files: 90 % of the pairs under 1 m, any turn), drawn
+    at random (``seed``): ``count`` in all, ``long_share`` of them more than 10 s apart (the
+    files: about 40 %), fewer where fewer such pairs exist. The reference scores 0 on them."""
+    from scipy.spatial import cKDTree
+
+    poses = np.asarray(poses, dtype=np.float64)
+    if len(stamps) != len(poses) or len(stamps) < 2:
+        raise InputError(f"{len(stamps)} timestamps for {len(poses)} poses: need two or more of each, as many")
+    t = np.array([float(s) for s in stamps])
+    pairs = cKDTree(poses[:, :2]).query_pairs(near_m, output_type="ndarray").reshape(-1, 2)
+    i, j = pairs.min(1), pairs.max(1)
+    swap = t[j] < t[i]  # the earlier scan first (some logs' clocks step back)
+    i, j = np.where(swap, j, i), np.where(swap, i, j)
+    long = t[j] - t[i] > LONG_RELATION_S
+    rng = np.random.default_rng(seed)
+    n_long = min(int(round(count * long_share)), int(long.sum()))
+    picks = [rng.permutation(np.flatnonzero(long))[:n_long],
+             rng.permutation(np.flatnonzero(~long))[:count - n_long]]
+    keep = np.concatenate(picks)
+    keep = keep[np.lexsort((t[j[keep]], t[i[keep]]))]
+    i, j = i[keep], j[keep]
+    return Relations([stamps[k] for k in i], [stamps[k] for k in j], se2.relative(poses[i], poses[j]), "<derived>")

@@ -246,12 +246,17 @@ def load_carmen(path: str | os.PathLike, gt_path=None, init_path=None, keyframes
     """A CARMEN log as a 2D ScanSet of its keyframes (``keyframes`` spec, see deepmapping.sequence;
     default ``motion:0.5,15``). init_poses = the log's laser poses (odometry: the warm start);
     ``sequence`` keeps every scan (timestamps, odometry) so a pose can be written for each, and
-    the relations file next to the log (``<name>.relations``) for scoring. ``non_keyframes``:
+    the relations file for scoring: ``gt_path`` (a ``.relations`` file) or the one next to the log
+    (``<name>.relations``). ``non_keyframes``:
     how the other scans get their pose, "odometry" from the nearest keyframe, or "icp" (then
     matched to that keyframe's scan)."""
     path = Path(path)
-    if gt_path is not None or init_path is not None:
-        raise ConfigError(f"{path}: a CARMEN log carries its own poses (odometry); --gt/--init are not read for it")
+    relations = gt_path is not None and str(gt_path).endswith(".relations")
+    if (gt_path is not None and not relations) or init_path is not None:
+        raise ConfigError(f"{path}: a CARMEN log carries its own poses (odometry); --init is not read for it, "
+                          "--gt only as a relations file (FILE.relations)")
+    if relations and not Path(gt_path).is_file():
+        raise InputError(f"{gt_path}: file not found")
     log = read_carmen(path)
     kf = select_keyframes(keyframes or DEFAULT_KEYFRAMES, log.poses, log.timestamps)
     if len(kf) < 2:
@@ -261,7 +266,7 @@ def load_carmen(path: str | os.PathLike, gt_path=None, init_path=None, keyframes
     empty = np.flatnonzero(~valid.any(axis=1))
     if len(empty):
         raise InputError(f"{path}:{log.lines[kf[empty[0]]]}: scan has no return (every range at the maximum)")
-    rel = relations_next_to(path)
+    rel = Path(gt_path) if relations else relations_next_to(path)
     if non_keyframes not in ("odometry", "icp"):
         raise ConfigError(f"non_keyframes must be 'odometry' or 'icp', got {non_keyframes!r}")
     seq = FullSequence(stamps=log.stamps, timestamps=log.timestamps, odometry=log.poses, keyframes=kf,
