@@ -249,6 +249,29 @@ def test_ctrl_c_then_resume_continues_exactly_where_the_run_stopped(small_scans,
         register(small_scans, _quick_cfg(seed=5), checkpoint=tmp_path / "b.pt", resume=True)
 
 
+def test_place_batches_resume_exactly_with_the_places_of_the_checkpoint(small_scans, tmp_path):
+    """The places are recomputed every optim.eval_every (3) epochs: a run stopped after epoch 2
+    resumes with the places it had (kept in the checkpoint), not ones from its poses then."""
+    from deepmapping.api import register
+    from deepmapping.solver.trainer import Interrupted
+
+    over = {"optim.batch_order": "place", "optim.eval_every": 3, "optim.epochs": 5, "optim.batch_size": 4,
+            "loss.chamfer_window": 1000, "loss.chamfer_truncate": 3.0}
+    full = register(small_scans, _quick_cfg(**over), checkpoint=tmp_path / "a.pt")
+
+    def ctrl_c_after_two_epochs(epoch, total, loss_value):
+        if epoch == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(Interrupted):
+        register(small_scans, _quick_cfg(**over), checkpoint=tmp_path / "b.pt", on_epoch=ctrl_c_after_two_epochs)
+    assert torch.load(tmp_path / "b.pt", weights_only=False)["places"].shape == (small_scans.num_scans, 4)
+    resumed = register(small_scans, _quick_cfg(**over), checkpoint=tmp_path / "b.pt", resume=True)
+    np.testing.assert_allclose(resumed.poses, full.poses, atol=1e-6)
+    contiguous = register(small_scans, _quick_cfg(**(over | {"optim.batch_order": "contiguous"})))
+    assert np.abs(contiguous.poses - full.poses).max() > 1e-6  # other batches, other steps
+
+
 def test_deepmapping_improves_on_its_icp_warm_start_and_needs_the_feature_standardization():
     from deepmapping.api import register
     from deepmapping.sim.dataset import simulate

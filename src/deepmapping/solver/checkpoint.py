@@ -45,6 +45,7 @@ def capture(trainer) -> dict:
         "early_stop_ref": None if st.early_stop_ref is None else st.early_stop_ref.copy(),
         "epoch_losses": list(st.epoch_losses),
         "stop_reason": st.stop_reason,
+        "places": None if st.places is None else st.places.copy(),
         "config": trainer.cfg.model_dump(),
         **trainer.extra,
     }
@@ -84,3 +85,5 @@ def restore(trainer, data: dict) -> None:
     ref = data.get("early_stop_ref")
     st.early_stop_ref = None if ref is None else ref.copy()
     st.epoch_losses, st.stop_reason = list(data.get("epoch_losses", [])), data.get("stop_reason", "")
+    places = data.get("places")
+    st.places = None if places is None else places.copy()

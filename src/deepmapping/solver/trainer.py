@@ -49,6 +49,7 @@ class TrainState:
     early_stop_ref: np.ndarray | None = None  # poses at the last log, for optim.early_stop_tol
     epoch_losses: list = field(default_factory=list)  # the last 2 x optim.stop_window epochs' mean losses
     stop_reason: str = ""  # why training ended before optim.epochs ("" = it ran them all)
+    places: np.ndarray | None = None  # optim.batch_order "place": Trainer._places as last computed
 
 
 def loss_plateau(losses: list, window: int, min_improvement: float) -> bool:
@@ -120,7 +121,6 @@ class Trainer:
             (cfg.seed + distributed.rank() * distributed.RANK_SEED_STRIDE) % 2**64)
         self._step_loss: tuple[tuple, torch.nn.Module] | None = None  # (what it was built for, the loss module)
         self.use_curriculum = curriculum.enabled(cfg, model, ordered)
-        self._place_cache: np.ndarray | None = None  # optim.batch_order "place": Trainer._places
         self.reset_optimizer()
         k = valid.shape[0]
         # valid beams each scan gives eq. 4 per step (select_beams takes valid ones first): workers' weights
@@ -329,14 +329,15 @@ class Trainer:
 
     def _places(self) -> np.ndarray:
         """Each scan's sensor position and the centre of its points, in the global frame, from the
-        poses of the model now (recomputed every optim.eval_every epochs)."""
-        if self._place_cache is None or self.state.epoch % self.cfg.optim.eval_every == 0:
+        poses of the model now (recomputed every optim.eval_every epochs; kept in the checkpoint)."""
+        st = self.state
+        if st.places is None or st.epoch % self.cfg.optim.eval_every == 0:
             v = self.valid.to(self.model.scans.dtype)[..., None]
             centre = (self.model.scans * v).sum(1, keepdim=True) / v.sum(1, keepdim=True).clamp(min=1)
             poses = self.model.all_poses()
             sensor = transform(poses, torch.zeros_like(centre))
-            self._place_cache = torch.cat([sensor, transform(poses, centre)], -1)[:, 0].cpu().numpy()
-        return self._place_cache
+            st.places = torch.cat([sensor, transform(poses, centre)], -1)[:, 0].cpu().numpy()
+        return st.places
 
     def _after_epoch(self, mean: np.ndarray, on_log) -> bool:
         """Log when due; whether training ends here (last epoch, time budget, early stop)."""
