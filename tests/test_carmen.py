@@ -296,3 +296,23 @@ def test_relations_from_a_corrected_log_scored_with_gt(tmp_path):
         load_scans(CARMEN / "fr079.clf.gz", gt_path=tmp_path / "none.relations")
     with pytest.raises(InputError, match="scans found in"):
         relations_from_corrected(CARMEN / "corrected" / "freiburg-079-corrected.log.gz", CARMEN / "intel.clf.gz")
+
+
+def test_cli_relations_then_register_scores_on_them(tmp_path):
+    corrected, log = CARMEN / "corrected" / "freiburg-079-corrected.log.gz", CARMEN / "fr079.clf.gz"
+    rel = tmp_path / "fr079-derived.relations"
+    res = CliRunner().invoke(app, ["relations", str(corrected), str(log), "--out", str(rel), "--count", "500"])
+    assert res.exit_code == 0, res.output
+    assert f"500 relations (200 over 10 s) written to {rel}" in " ".join(res.output.split())
+    out = tmp_path / "run"
+    res = CliRunner().invoke(app, ["register", str(log), "--gt", str(rel), "--method", "icp-point", "--warm-start",
+                                   "file", "--keyframes", "every:20", "--out", str(out), "--no-plots"])
+    assert res.exit_code == 0, res.output
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["relations"]["relations"] == 500 and m["relations"]["unmatched"] == 0
+    assert m["relations_file"] == str(rel)
+    bad = CliRunner().invoke(app, ["relations", str(corrected), str(CARMEN / "intel.clf.gz"), "--out",
+                                   str(tmp_path / "x.relations")])
+    # (the console script prints InputError as one line, exit 2: tests/test_cli.py)
+    assert isinstance(bad.exception, InputError) and "scans found in" in str(bad.exception)
+    assert not (tmp_path / "x.relations").exists()

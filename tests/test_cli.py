@@ -138,11 +138,11 @@ def runs(tmp_path_factory, data16) -> dict[str, tuple[Path, subprocess.Completed
 def test_app_help_lists_commands():
     res = ok(dm("--help"))
     assert "Usage" in res.stdout
-    for cmd in ("simulate", "register", "evaluate", "demo"):
+    for cmd in ("simulate", "register", "evaluate", "relations", "demo"):
         assert cmd in res.stdout
 
 
-@pytest.mark.parametrize("cmd", ["simulate", "register", "evaluate", "demo"])
+@pytest.mark.parametrize("cmd", ["simulate", "register", "evaluate", "relations", "demo"])
 def test_command_help_shows_an_example(cmd):
     res = ok(dm(cmd, "--help"))
     assert "Usage" in res.stdout

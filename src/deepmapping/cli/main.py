@@ -1,4 +1,4 @@
-"""The `deepmapping` command: simulate, register, evaluate, experiment, demo."""
+"""The `deepmapping` command: simulate, register, evaluate, relations, experiment, demo."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from deepmapping.cli.demo_cmd import run_demo
 from deepmapping.cli.evaluate_cmd import run_evaluate
 from deepmapping.cli.experiment_cmd import run_experiment_cli
 from deepmapping.config import PROFILES
-from deepmapping.errors import DeepMappingError
+from deepmapping.errors import ConfigError, DeepMappingError
 from deepmapping.experiments import EXPERIMENTS
 from deepmapping.methods.registry import METHODS as METHODS_BY_NAME
 from deepmapping.output.run_dir import default_run_dir
@@ -187,6 +187,29 @@ def evaluate(
 
     metrics = run_evaluate(run_dir, gt)
     print_metrics(console, {metrics["method"]: metrics}, title=str(run_dir))
+
+
+@app.command(epilog="Example:\n\n  deepmapping relations ../shared/data/carmen/corrected/csail-corrected.log.gz "
+                    "../shared/data/carmen/mit-csail.clf.bz2 --out mit-csail.relations\n\n"
+                    "  deepmapping register ../shared/data/carmen/mit-csail.clf.bz2 --gt mit-csail.relations")
+def relations(
+    corrected: Path = typer.Argument(..., help="A corrected log (poses from a SLAM system, e.g. *-corrected.log.gz)."),
+    log: Path = typer.Argument(..., help="The raw log of the same run (its timestamps are the relations')."),
+    out: Path = typer.Option(..., help="The .relations file to write (Freiburg benchmark format)."),
+    count: int = typer.Option(3000, help="Relations to draw (fewer where fewer pairs qualify)."),
+    seed: int = typer.Option(0, help="Seed of the random draw."),
+):
+    """Relations for a log without the benchmark's file: pairs of scans at most 1 m apart in the
+    corrected log, 40 % of them over 10 s apart, drawn at random; score with --gt FILE.relations."""
+    from deepmapping.cli.progress import console
+    from deepmapping.io.relations import relations_from_corrected, write_relations
+
+    if out.suffix != ".relations":
+        raise ConfigError(f"{out}: the file name must end in .relations (what --gt reads as relations)")
+    rel = relations_from_corrected(corrected, log, seed=seed, count=count)
+    write_relations(out, rel)
+    long = int((rel.span_s() > 10.0).sum())
+    console.print(f"{len(rel)} relations ({long} over 10 s) written to {out}", highlight=False, soft_wrap=True)
 
 
 @app.command(epilog="Examples:\n\n  deepmapping experiment 1d --out exp/1d\n\n"

@@ -14,7 +14,8 @@ from deepmapping.io.carmen import match_scans, read_carmen
 __all__ = ["relations_from_corrected", "write_relations"]
 
 
-def relations_from_corrected(corrected: str | os.PathLike, raw: str | os.PathLike, seed: int = 0) -> Relations:
+def relations_from_corrected(corrected: str | os.PathLike, raw: str | os.PathLike, seed: int = 0,
+                             count: int = 3000) -> Relations:
     """Relations (``derive_relations``) from the poses of a ``*-corrected`` log, at the timestamps of
     the same scans in the raw log (matched by their ranges: corrected logs rewrite the timestamps)."""
     ref, log = read_carmen(corrected), read_carmen(raw)
@@ -24,7 +25,7 @@ def relations_from_corrected(corrected: str | os.PathLike, raw: str | os.PathLik
         raise InputError(f"{corrected}: {ok.size} of its {ref.num_scans} scans found in {raw} (same ranges); "
                          "is it the corrected log of that log?")
     order = ok[np.argsort(idx[ok], kind="stable")]
-    rel = derive_relations([log.stamps[k] for k in idx[order]], ref.poses[order], seed=seed)
+    rel = derive_relations([log.stamps[k] for k in idx[order]], ref.poses[order], count=count, seed=seed)
     rel.path = f"derived from {corrected}"
     return rel
 
