@@ -158,6 +158,24 @@ def test_random_and_place_batches_partition_scans():
         assert all(len(set((b >= 20).tolist())) == 1 for b in place) and len(place) == 4
 
 
+def test_place_pairs_join_revisits_to_the_temporal_pairs():
+    # a batch of scans 0, 1, 2 at one place and 50, 51 back at it, 90 elsewhere: scan 0's two nearest
+    # by place are 1 and 50 (a revisit), never 90
+    places = np.array([[0.0, 0.0], [0.1, 0.0], [0.5, 0.0], [0.05, 0.02], [0.6, 0.0], [9.0, 9.0]])
+    a, b = loss.place_pairs(places, 2)
+    pairs = set(zip(a.tolist(), b.tolist()))
+    assert (0, 3) in pairs and (0, 5) not in pairs and all(i < j for i, j in pairs)
+    x = torch.randn(6, 10, 2)
+    v = torch.ones(6, 10, dtype=torch.bool)
+    idx = torch.tensor([0, 1, 2, 50, 51, 90])
+    alone = loss.chamfer_loss(x, v, idx, 1)
+    both = loss.chamfer_loss(x, v, idx, 1, extra_pairs=(a, b))
+    ta, tb = loss.temporal_pairs(idx, 1)
+    union = {*zip(ta.tolist(), tb.tolist()), *pairs}
+    expect = torch.stack([loss.chamfer(x[[i]], v[[i]], x[[j]], v[[j]])[0] for i, j in sorted(union)]).mean()
+    assert both.item() == pytest.approx(expect.item(), rel=1e-5) and both.item() != pytest.approx(alone.item())
+
+
 def test_truncated_chamfer_counts_far_points_as_the_bound():
     x = torch.tensor([[[0.0, 0.0], [1.0, 0.0], [5.0, 0.0]]], requires_grad=True)
     y = torch.tensor([[[0.0, 0.1], [1.0, 0.1]]])
@@ -256,7 +274,7 @@ def test_place_batches_resume_exactly_with_the_places_of_the_checkpoint(small_sc
     from deepmapping.solver.trainer import Interrupted
 
     over = {"optim.batch_order": "place", "optim.eval_every": 3, "optim.epochs": 5, "optim.batch_size": 4,
-            "loss.chamfer_window": 1000, "loss.chamfer_truncate": 3.0}
+            "loss.chamfer_window": 1000, "loss.chamfer_truncate": 3.0, "loss.chamfer_place_neighbours": 2}
     full = register(small_scans, _quick_cfg(**over), checkpoint=tmp_path / "a.pt")
 
     def ctrl_c_after_two_epochs(epoch, total, loss_value):

@@ -105,6 +105,10 @@ class LossConfig(_Section):
     # None: every distance counts (the paper's); a number t: a point whose nearest neighbour is further than
     # t x the scans' median point spacing counts t x that spacing (no gradient): parts seen by one scan only
     chamfer_truncate: float | None = Field(None, gt=0)
+    # > 0: each scan of a batch also paired with its this many nearest scans of the batch by place
+    # (sensor position and the centre of its points, from the poses; revisits), as well as with its
+    # temporal neighbours: with optim.batch_order "place", loops are pulled together
+    chamfer_place_neighbours: int = Field(0, ge=0)
     # The odometry factor (3D ordered scans): the warm start's relative motion between temporal
     # neighbours as a soft constraint, mean over pairs of |dt / sigma_t|^2 + (dtheta / sigma_r)^2
     # added to the loss; [sigma_t in the scans' units (metres), sigma_r in degrees]. "auto": on when

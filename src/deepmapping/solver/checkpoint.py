@@ -46,6 +46,7 @@ def capture(trainer) -> dict:
         "epoch_losses": list(st.epoch_losses),
         "stop_reason": st.stop_reason,
         "places": None if st.places is None else st.places.copy(),
+        "places_epoch": st.places_epoch,
         "config": trainer.cfg.model_dump(),
         **trainer.extra,
     }
@@ -87,3 +88,4 @@ def restore(trainer, data: dict) -> None:
     st.epoch_losses, st.stop_reason = list(data.get("epoch_losses", [])), data.get("stop_reason", "")
     places = data.get("places")
     st.places = None if places is None else places.copy()
+    st.places_epoch = data.get("places_epoch", -1)

@@ -95,18 +95,34 @@ def temporal_pairs(indices: torch.Tensor, window: int) -> tuple[torch.Tensor, to
     return a, b
 
 
+def place_pairs(places: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (a < b) in a batch of each scan and its ``k`` nearest others by place (``places``
+    (B, F), as trainer.place_batches), each pair once."""
+    d = np.linalg.norm(places[:, None] - places[None], axis=-1)
+    np.fill_diagonal(d, np.inf)
+    near = np.argsort(d, axis=1, kind="stable")[:, : min(k, len(places) - 1)]
+    a = np.repeat(np.arange(len(places)), near.shape[1])
+    pairs = np.unique(np.sort(np.stack([a, near.ravel()], 1), axis=1), axis=0)
+    return pairs[:, 0], pairs[:, 1]
+
+
 def chamfer_loss(glob: torch.Tensor, valid: torch.Tensor, indices: torch.Tensor, window: int,
                  queries: torch.Tensor | None = None, queries_valid: torch.Tensor | None = None,
                  first_below: int | None = None, normals: torch.Tensor | None = None,
-                 truncate: float | None = None) -> torch.Tensor:
+                 truncate: float | None = None, extra_pairs: tuple | None = None) -> torch.Tensor:
     """Eq. 7 averaged over the neighbour pairs present in the batch (0 when there are none).
 
     glob (B, N, D): whole scans in the global frame; queries (B, n, D): optional subsets of them
     whose distances to the neighbour's whole scan estimate the two means of eq. 5; normals (B, N, D):
     the scans' unit normals in the global frame, for point-to-plane distances.
     ``first_below``: only the pairs whose earlier scan is at a position below it (a worker's own scans).
+    ``extra_pairs``: positions (a, b) to pair as well as the temporal neighbours (place_pairs).
     """
     a, b = temporal_pairs(indices, window)
+    if extra_pairs is not None:
+        both = torch.cat([torch.stack([a, b], 1), torch.as_tensor(np.stack(extra_pairs, 1), dtype=a.dtype)])
+        both = torch.unique(both, dim=0)
+        a, b = both[:, 0], both[:, 1]
     if first_below is not None:
         keep = a < first_below
         a, b = a[keep], b[keep]

@@ -16,7 +16,7 @@ from deepmapping.methods.icp3d import point_spacing
 from deepmapping.solver import checkpoint as ckpt
 from deepmapping.solver import curriculum, distributed
 from deepmapping.solver.geometry import rotate, transform
-from deepmapping.solver.loss import chamfer_loss, occupancy_bce, odometry_factor, scan_normals
+from deepmapping.solver.loss import chamfer_loss, occupancy_bce, odometry_factor, place_pairs, scan_normals
 from deepmapping.solver.model import DeepMappingModel
 from deepmapping.solver.resolution import resolve_step
 from deepmapping.solver.sampling import free_space_fractions, free_space_points, near_hit_fractions, select_beams
@@ -50,6 +50,7 @@ class TrainState:
     epoch_losses: list = field(default_factory=list)  # the last 2 x optim.stop_window epochs' mean losses
     stop_reason: str = ""  # why training ended before optim.epochs ("" = it ran them all)
     places: np.ndarray | None = None  # optim.batch_order "place": Trainer._places as last computed
+    places_epoch: int = -1  # ... at the start of this epoch
 
 
 def loss_plateau(losses: list, window: int, min_improvement: float) -> bool:
@@ -185,8 +186,11 @@ class Trainer:
             return bce, bce.new_zeros(()), odo
         # the beams sampled for eq. 4 are also the Chamfer queries (all beams in the paper profile)
         normals = None if self.normals is None else rotate(poses, self.normals[idx])
+        extra = None
+        if cfg.chamfer_place_neighbours:
+            extra = place_pairs(self.state.places[idx.cpu().numpy()], cfg.chamfer_place_neighbours)
         return bce, chamfer_loss(transform(poses, scans), valid, idx, cfg.chamfer_window, occ_global, pv, own,
-                                 normals=normals, truncate=self.truncate), odo
+                                 normals=normals, truncate=self.truncate, extra_pairs=extra), odo
 
     def step(self, idx: np.ndarray, lr: float | None = None) -> tuple[float, float, float]:
         """One optimizer step on the scans ``idx``; ``lr``: a constant rate instead of the schedule."""
@@ -318,8 +322,10 @@ class Trainer:
         self._anneal_mnet()
         rng = np.random.default_rng([self.cfg.seed, self.state.epoch])
         sums = np.zeros(3)
+        if self.cfg.optim.batch_order == "place" or self.cfg.loss.chamfer_place_neighbours:
+            places = self._places()
         if self.cfg.optim.batch_order == "place":
-            batches = place_batches(self._places(), self.cfg.optim.batch_size, rng)
+            batches = place_batches(places, self.cfg.optim.batch_size, rng)
         else:
             batches = epoch_batches(self.valid.shape[0], self.cfg.optim.batch_size, rng, self.cfg.optim.batch_order)
         self._epoch_warmup = self.mnet_warmup_now()  # its loss is not the stopping rule's
@@ -329,14 +335,15 @@ class Trainer:
 
     def _places(self) -> np.ndarray:
         """Each scan's sensor position and the centre of its points, in the global frame, from the
-        poses of the model now (recomputed every optim.eval_every epochs; kept in the checkpoint)."""
+        poses of the model at the start of an epoch, every optim.eval_every epochs (kept in the checkpoint)."""
         st = self.state
-        if st.places is None or st.epoch % self.cfg.optim.eval_every == 0:
+        if st.places is None or (st.epoch % self.cfg.optim.eval_every == 0 and st.places_epoch != st.epoch):
             v = self.valid.to(self.model.scans.dtype)[..., None]
             centre = (self.model.scans * v).sum(1, keepdim=True) / v.sum(1, keepdim=True).clamp(min=1)
             poses = self.model.all_poses()
             sensor = transform(poses, torch.zeros_like(centre))
             st.places = torch.cat([sensor, transform(poses, centre)], -1)[:, 0].cpu().numpy()
+            st.places_epoch = st.epoch
         return st.places
 
     def _after_epoch(self, mean: np.ndarray, on_log) -> bool:
