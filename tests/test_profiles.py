@@ -11,7 +11,7 @@ from deepmapping.errors import ConfigError
 def test_the_profiles_are_the_files():
     names = sorted(f.stem for f in PROFILE_DIR.iterdir() if f.suffix == ".yaml")
     assert sorted(PROFILES) == names
-    assert {"default", "default-3d", "paper", "paper-3d", "cold", "fast", "bunny", "relocalization"} <= set(names)
+    assert {"default", "default-3d", "paper", "paper-3d", "cold", "fast", "bunny", "relocalization", "long"} <= set(names)
 
 
 @pytest.mark.parametrize("name", ["default", "default-3d", "paper", "paper-3d"])
