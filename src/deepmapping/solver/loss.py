@@ -120,7 +120,8 @@ def chamfer_loss(glob: torch.Tensor, valid: torch.Tensor, indices: torch.Tensor,
     """
     a, b = temporal_pairs(indices, window)
     if extra_pairs is not None:
-        both = torch.cat([torch.stack([a, b], 1), torch.as_tensor(np.stack(extra_pairs, 1), dtype=a.dtype)])
+        extra = torch.as_tensor(np.stack(extra_pairs, 1), dtype=a.dtype, device=a.device)
+        both = torch.cat([torch.stack([a, b], 1), extra])
         both = torch.unique(both, dim=0)
         a, b = both[:, 0], both[:, 1]
     if first_below is not None:

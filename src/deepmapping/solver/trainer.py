@@ -188,7 +188,7 @@ class Trainer:
         normals = None if self.normals is None else rotate(poses, self.normals[idx])
         extra = None
         if cfg.chamfer_place_neighbours:
-            extra = place_pairs(self.state.places[idx.cpu().numpy()], cfg.chamfer_place_neighbours)
+            extra = place_pairs(self._places()[idx.cpu().numpy()], cfg.chamfer_place_neighbours)
         return bce, chamfer_loss(transform(poses, scans), valid, idx, cfg.chamfer_window, occ_global, pv, own,
                                  normals=normals, truncate=self.truncate, extra_pairs=extra), odo
 
