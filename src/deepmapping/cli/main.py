@@ -202,13 +202,14 @@ def relations(
     """Relations for a log without the benchmark's file: pairs of scans at most 1 m apart in the
     corrected log, 40 % of them over 10 s apart, drawn at random; score with --gt FILE.relations."""
     from deepmapping.cli.progress import console
+    from deepmapping.evaluation.relations import LONG_RELATION_S
     from deepmapping.io.relations import relations_from_corrected, write_relations
 
     if out.suffix != ".relations":
         raise ConfigError(f"{out}: the file name must end in .relations (what --gt reads as relations)")
     rel = relations_from_corrected(corrected, log, seed=seed, count=count)
     write_relations(out, rel)
-    long = int((rel.span_s() > 10.0).sum())
+    long = int((rel.span_s() > LONG_RELATION_S).sum())
     console.print(f"{len(rel)} relations ({long} over 10 s) written to {out}", highlight=False, soft_wrap=True)
 
 

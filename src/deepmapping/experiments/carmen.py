@@ -6,7 +6,7 @@ are registered by each method, every scan of the log is placed from its nearest 
 (odometry, then ICP to the keyframes around it), and all relations of Kümmerle et al. 2009 are
 scored: translational (m) and rotational (deg) errors, mean ± std and median, split at 10 s.
 A log without the benchmark's relations file but with a corrected log (mit-csail) is scored on
-relations derived from it (``io.relations.relations_from_corrected``: 3 000 random pairs of scans
+relations derived from it (``evaluation.relations.derive_relations``: 3 000 random pairs of scans
 at most 1 m apart, 40 % of them more than 10 s apart, seed 0); intel and fr079 are scored on
 derived relations too (column "derived"), which shows how the two measures compare.
 
@@ -31,12 +31,11 @@ import numpy as np
 from deepmapping.api import evaluate_relations, register
 from deepmapping.config import load_config
 from deepmapping.errors import ConfigError
-from deepmapping.evaluation.relations import Relations, read_relations, score_relations
+from deepmapping.evaluation.relations import Relations, derive_relations, read_relations, score_relations
 from deepmapping.experiments.base import Job, in_fresh_process
 from deepmapping.experiments.report import write_report
-from deepmapping.io.carmen import match_scans, read_carmen
 from deepmapping.io.loaders import load_scans
-from deepmapping.io.relations import relations_from_corrected
+from deepmapping.io.relations import corrected_trajectory
 from deepmapping.methods.keyframes import place_all_scans
 
 DATA = "carmen"  # the folder under ../shared/data
@@ -73,10 +72,10 @@ def benchmark_relations(data: Path, log: str) -> Path | None:
     return path if path.is_file() else None
 
 
-def derived_relations(data: Path, log: str) -> Relations | None:
-    """The relations derived from the log's corrected log (None without one)."""
+def reference_trajectory(data: Path, log: str) -> tuple[list[str], np.ndarray] | None:
+    """The corrected log's poses at the raw log's timestamps (None without a corrected log)."""
     corrected = corrected_file(data, log)
-    return None if corrected is None else relations_from_corrected(corrected, log_file(data, log))
+    return None if corrected is None else corrected_trajectory(corrected, log_file(data, log))
 
 
 def jobs(quick: bool, data: str) -> list[Job]:
@@ -132,12 +131,12 @@ def _register(data: Path, log: str, name: str, keyframes: str, epochs: int | Non
 def _scores(data: Path, log: str, scans, poses) -> dict:
     """"relations": on the benchmark's file, else on the derived ones; "derived": on the derived ones;
     "on_reference": on the benchmark relations the corrected log covers."""
-    derived = derived_relations(data, log)
-    on_derived = None if derived is None else _score(scans, poses, derived)
+    ref = reference_trajectory(data, log)
+    on_derived = None if ref is None else _score(scans, poses, derive_relations(*ref))
     bench = benchmark_relations(data, log)
     main = evaluate_relations(scans, poses, bench)["relations"] if bench else on_derived
     return {"relations": main, "relations_source": "benchmark" if bench else "derived", "derived": on_derived,
-            "on_reference": _on_reference(data, log, scans, poses) if bench else None}
+            "on_reference": _on_reference(bench, ref, scans, poses) if bench else None}
 
 
 def _score(scans, poses, relations: Relations) -> dict:
@@ -145,15 +144,13 @@ def _score(scans, poses, relations: Relations) -> dict:
     return score_relations(relations, seq.stamps, place_all_scans(seq, poses))
 
 
-def _on_reference(data: Path, log: str, scans, poses) -> dict | None:
+def _on_reference(bench: Path, ref: tuple | None, scans, poses) -> dict | None:
     """The errors on the relations the corrected reference covers (both scans in the corrected
     log): the like-for-like comparison with the reference row (intel: 90 of 2984)."""
-    if corrected_file(data, log) is None:
+    if ref is None:
         return None
-    raw = read_carmen(log_file(data, log))
-    idx = match_scans(read_carmen(corrected_file(data, log)), raw)
-    covered = {raw.stamps[k] for k in idx[idx >= 0]}
-    rel = read_relations(benchmark_relations(data, log))
+    covered = set(ref[0])
+    rel = read_relations(bench)
     keep = [a in covered and b in covered for a, b in zip(rel.stamp_i, rel.stamp_j)]
     sub = Relations([a for a, k in zip(rel.stamp_i, keep) if k], [b for b, k in zip(rel.stamp_j, keep) if k],
                     rel.motion[np.array(keep)], rel.path)
@@ -161,16 +158,12 @@ def _on_reference(data: Path, log: str, scans, poses) -> dict | None:
 
 
 def _reference(data: Path, log: str) -> dict:
-    raw = read_carmen(log_file(data, log))
-    ref = read_carmen(corrected_file(data, log))
-    idx = match_scans(ref, raw)
-    ok = idx >= 0
-    stamps = [raw.stamps[k] for k in idx[ok]]
-    derived = score_relations(derived_relations(data, log), stamps, ref.poses[ok])
+    stamps, poses = reference_trajectory(data, log)
+    derived = score_relations(derive_relations(stamps, poses), stamps, poses)
     bench = benchmark_relations(data, log)
-    scores = score_relations(read_relations(bench), stamps, ref.poses[ok]) if bench else derived
+    scores = score_relations(read_relations(bench), stamps, poses) if bench else derived
     return {"relations": scores, "relations_source": "benchmark" if bench else "derived", "derived": derived,
-            "keyframes": int(ok.sum())}
+            "keyframes": len(stamps)}
 
 
 def _cell(s: dict | None, what: str) -> str:

@@ -11,13 +11,12 @@ from deepmapping.evaluation.relations import Relations, derive_relations
 from deepmapping.io.atomic import atomic_write
 from deepmapping.io.carmen import match_scans, read_carmen
 
-__all__ = ["relations_from_corrected", "write_relations"]
+__all__ = ["corrected_trajectory", "relations_from_corrected", "write_relations"]
 
 
-def relations_from_corrected(corrected: str | os.PathLike, raw: str | os.PathLike, seed: int = 0,
-                             count: int = 3000) -> Relations:
-    """Relations (``derive_relations``) from the poses of a ``*-corrected`` log, at the timestamps of
-    the same scans in the raw log (matched by their ranges: corrected logs rewrite the timestamps)."""
+def corrected_trajectory(corrected: str | os.PathLike, raw: str | os.PathLike) -> tuple[list[str], np.ndarray]:
+    """The poses (S, 3) of a ``*-corrected`` log at the timestamps of the same scans in the raw log
+    (matched by their ranges: corrected logs rewrite the timestamps), in the raw log's order."""
     ref, log = read_carmen(corrected), read_carmen(raw)
     idx = match_scans(ref, log)
     ok = np.flatnonzero(idx >= 0)
@@ -25,7 +24,13 @@ def relations_from_corrected(corrected: str | os.PathLike, raw: str | os.PathLik
         raise InputError(f"{corrected}: {ok.size} of its {ref.num_scans} scans found in {raw} (same ranges); "
                          "is it the corrected log of that log?")
     order = ok[np.argsort(idx[ok], kind="stable")]
-    rel = derive_relations([log.stamps[k] for k in idx[order]], ref.poses[order], count=count, seed=seed)
+    return [log.stamps[k] for k in idx[order]], ref.poses[order]
+
+
+def relations_from_corrected(corrected: str | os.PathLike, raw: str | os.PathLike, seed: int = 0,
+                             count: int = 3000) -> Relations:
+    """Relations (``derive_relations``) from the poses of a ``*-corrected`` log (``corrected_trajectory``)."""
+    rel = derive_relations(*corrected_trajectory(corrected, raw), count=count, seed=seed)
     rel.path = f"derived from {corrected}"
     return rel
 

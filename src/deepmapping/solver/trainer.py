@@ -12,13 +12,12 @@ import torch
 
 from deepmapping.config import Config
 from deepmapping.errors import Interrupted, TrainingError
-from deepmapping.methods.icp3d import point_spacing
 from deepmapping.solver import checkpoint as ckpt
 from deepmapping.solver import curriculum, distributed
 from deepmapping.solver.geometry import rotate, transform
 from deepmapping.solver.loss import chamfer_loss, occupancy_bce, odometry_factor, place_pairs, scan_normals
 from deepmapping.solver.model import DeepMappingModel
-from deepmapping.solver.resolution import resolve_step
+from deepmapping.solver.resolution import point_spacing, resolve_step
 from deepmapping.solver.sampling import free_space_fractions, free_space_points, near_hit_fractions, select_beams
 
 
@@ -111,8 +110,7 @@ class Trainer:
                 model.scans.device)
         self.truncate = None
         if self.use_chamfer and cfg.loss.chamfer_truncate is not None:
-            spacing = point_spacing([s[v] for s, v in zip(model.scans.cpu().numpy(), valid.cpu().numpy())])
-            self.truncate = cfg.loss.chamfer_truncate * spacing
+            self.truncate = cfg.loss.chamfer_truncate * point_spacing(model.scans.cpu().numpy(), valid.cpu().numpy())
         # loss.beams_per_scan "auto" made a number (self.cfg stays as given: the checkpoint's settings)
         self.beams_per_scan = resolve_step(cfg, valid.shape[1], model.lnet.grid_shape).loss.beams_per_scan
         self.evaluate = evaluate
