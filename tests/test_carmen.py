@@ -316,3 +316,17 @@ def test_cli_relations_then_register_scores_on_them(tmp_path):
     # (the console script prints InputError as one line, exit 2: tests/test_cli.py)
     assert isinstance(bad.exception, InputError) and "scans found in" in str(bad.exception)
     assert not (tmp_path / "x.relations").exists()
+
+
+def test_a_classical_method_on_a_log_starts_from_its_odometry():
+    """``register LOG --method loop-closure`` (or icp-*) starts from the log's odometry, as the experiment's
+    rows (warm start "file") and the warm start do; ``--warm-start none`` from the identity."""
+    from deepmapping.api import register
+    from deepmapping.config import load_config
+
+    scans = load_scans(CARMEN / "fr079.clf.gz", keyframes="motion:1.5,45")  # 41 keyframes
+    run = {m: register(scans, load_config("default", overrides={"method": "icp-point", "threads": 1,
+                                                                    "warm_start": {"method": m}}))
+           for m in ("auto", "file", "none")}
+    np.testing.assert_array_equal(run["auto"].poses, run["file"].poses)
+    assert np.abs(run["none"].poses - run["file"].poses).max() > 1e-3

@@ -68,8 +68,8 @@ def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | 
     cfg = config or load_config(resolve_profile("default", scans.is_3d))
     check_settings(scans, cfg)
     t0 = time.perf_counter()
-    if cfg.method in BASELINES:  # initial guesses only from a pose file (warm_start.method = "file")
-        init = warm_start_poses(scans, cfg) if cfg.warm_start.method == "file" else None
+    if cfg.method in BASELINES:  # initial guesses from a pose file, or from a 2D log's own odometry
+        init = warm_start_poses(scans, cfg) if cfg.warm_start.method == "file" else _log_odometry(scans, cfg)
         info: dict = {}
         poses = baseline_poses(scans, cfg, cfg.method, init, on_icp_progress, info=info)
         result = _finish(scans, cfg, poses, t0, init=init)
@@ -102,6 +102,14 @@ def baseline_poses(scans: ScanSet, cfg: Config, method: str, init=None, progress
     """Classic registration by name (methods.registry): incremental ICP (2D: ours; 3D: Open3D),
     loop closure (2D logs), planar ICP, multiway registration or KISS-ICP odometry (3D)."""
     return run_classical(scans, cfg, method, init, progress, info)
+
+
+def _log_odometry(scans: ScanSet, cfg: Config) -> np.ndarray | None:
+    """A classical method's start on a 2D log (``--method loop-closure``, ``icp-*``): its odometry, as
+    the warm start's ICP uses it (None = the identity, also with ``warm_start.method = "none"``)."""
+    if scans.is_3d or scans.sequence is None or scans.init_poses is None or cfg.warm_start.method == "none":
+        return None
+    return np.asarray(scans.init_poses, dtype=np.float64)
 
 
 def warm_start_poses(scans: ScanSet, cfg: Config, progress=None) -> np.ndarray:
