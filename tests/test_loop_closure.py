@@ -176,3 +176,41 @@ def test_sequential_match_recovers_an_odometry_jump(ring):
     guess = truth + np.array([0.8, -0.5, 0.05])
     rel = _sequential(points, valid, poses, 5, guess, 5, "plane", (0.1, 5.0), 4.0, 0.1)
     assert np.hypot(*(rel[:2] - truth[:2])) < 0.05 and abs(rel[2] - truth[2]) < np.radians(1)
+
+
+def test_free_space_conflict_counts_returns_inside_observed_free_space():
+    from deepmapping.methods.loop_closure import free_space_conflict
+
+    a = np.linspace(-np.pi, np.pi, 360, endpoint=False)
+    wall = 5.0 * np.column_stack([np.cos(a), np.sin(a)])  # a round room seen from its centre
+    b = np.linspace(-3, 3, 100)
+    hits = np.column_stack([np.cos(b), np.sin(b)])
+    assert free_space_conflict(wall, 5.0 * hits, 0.1) == 0.0  # on the wall
+    assert free_space_conflict(wall, 3.0 * hits, 0.1) == 1.0  # where the beams passed
+    assert free_space_conflict(wall, 7.0 * hits, 0.1) == 0.0  # behind the wall: never seen
+    assert free_space_conflict(wall, 4.95 * hits, 0.1) == 0.0  # within the margin
+    half = wall[np.cos(a) > 0]  # a scanner that sees one side only says nothing about the other
+    assert free_space_conflict(half, -3.0 * hits[40:60], 0.1) == 0.0
+
+
+def test_closure_conflict_is_low_at_the_true_revisit_and_high_when_shifted(ring):
+    from deepmapping.methods.loop_closure import _closure_conflict
+
+    points, valid, gt, _ = ring
+    j, n = 0, 72  # the ring is driven 1.25 times: scan 72 is back at scan 0's place
+    true = se2.relative(gt[j], gt[n])
+    assert np.hypot(*true[:2]) < 0.1
+    assert _closure_conflict(points, valid, gt, j, n, true, 2, 0.2) < 0.02
+    shifted = true + np.array([0.0, 0.6, 0.0])  # across the corridor: n's walls inside j's free space
+    assert _closure_conflict(points, valid, gt, j, n, se2.compose(true, [0.0, 0.6, 0.0]), 2, 0.2) > 0.1
+    assert _closure_conflict(points, valid, gt, j, n, shifted + np.array([0, 0, 0.3]), 2, 0.2) > 0.1
+
+
+def test_a_closure_that_contradicts_the_map_is_not_kept(ring, monkeypatch):
+    import deepmapping.methods.loop_closure as lc
+
+    points, valid, gt, _ = ring
+    args = (points, valid, gt, 0, 72, 2, 3.0, 0.7, 0.1, 0.2)
+    assert lc._match(*args, 1.0) is not None and lc._match(*args, 0.1) is not None
+    monkeypatch.setattr(lc, "_closure_conflict", lambda *a: 0.3)
+    assert lc._match(*args, 0.1) is None and lc._match(*args, 1.0) is not None

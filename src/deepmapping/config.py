@@ -279,6 +279,10 @@ class LoopClosureConfig(_Section):
     # a loop closure is kept only where the matched walls fix both translation directions:
     # smaller / larger eigenvalue of the inliers' mean n n^T (0 = a straight corridor)
     min_constraint: float = Field(0.2, ge=0, le=1)
+    # ... and where it makes the map contradict itself (eq. 4's contradiction: returns where the
+    # other visit's beams passed) no more than this: the smaller of the two visits' fractions of
+    # returns in the other's free space (1 = no test; 0.05 from fr079's kept closures, 99th percentile)
+    max_free_conflict: float = Field(0.05, ge=0, le=1)
 
 
 class WarmStartConfig(_Section):
@@ -337,7 +341,9 @@ class Config(_Section):
 
 
 # settings that moved (old dotted name -> new); configs and overrides with the old names still load
-RENAMED = {f"icp.loop_{name}": f"loop.{name}" for name in LoopClosureConfig.model_fields}
+RENAMED = {f"icp.loop_{name}": f"loop.{name}" for name in ("radius", "min_gap", "max_candidates", "min_overlap",
+                                                          "inlier_distance", "sequential_submap", "sequential_method",
+                                                          "odometry_sigma", "min_constraint")}
 
 
 def migrate_settings(data: dict) -> dict:

@@ -8,10 +8,13 @@ in order; each is matched by ICP to a submap of its ``sequential_submap`` predec
 so that matches in featureless corridors do not slide) and to a local
 submap around up to ``max_candidates`` earlier keyframes near its current estimate (at least
 ``min_gap`` keyframes back); a match is kept when at least ``min_overlap`` of the scan's
-points fall within ``inlier_distance`` of the submap; each kept loop closure triggers a
-pose-graph optimization (:mod:`deepmapping.methods.pose_graph_2d`), so drift is removed before
-the next keyframe looks for its neighbours. The result warm-starts DeepMapping, and its
-edges feed DeepMapping's loop-closure consistency term.
+points fall within ``inlier_distance`` of the submap, the matched walls fix both directions of
+the translation (``min_constraint``) and the match puts no more than ``max_free_conflict`` of
+either visit's returns where the other's beams passed (the contradiction DeepMapping's loss
+penalizes); each kept loop closure triggers a pose-graph optimization
+(:mod:`deepmapping.methods.pose_graph_2d`, whose Cauchy kernel down-weights a wrong one that got
+through), so drift is removed before the next keyframe looks for its neighbours. The result
+warm-starts DeepMapping.
 """
 
 from __future__ import annotations
@@ -45,6 +48,7 @@ def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float =
                 min_overlap: float = 0.7, inlier_distance: float = 0.1, submap_half_width: int = 2,
                 sequential_submap: int = 5, sequential_method: str = "plane",
                 odometry_sigma: tuple[float, float] | None = (0.1, 5.0), min_constraint: float = 0.2,
+                max_free_conflict: float = 0.05,
                 progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, list[Edge]]:
     """Poses (K, 3) after loop closing, and the pose-graph edges (sequential and loop closures).
 
@@ -54,6 +58,8 @@ def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float =
     deviations, so a match cannot slide along a featureless corridor (None: ICP alone).
     ``min_constraint``: a loop closure is kept only where the matched geometry fixes both
     directions of the translation (see ``_constraint``); corridors alias along themselves.
+    ``max_free_conflict``: ... and where it contradicts the free space seen (``_closure_conflict``;
+    1 = no such test).
     """
     pts = np.asarray(points, dtype=np.float64)
     valid = np.asarray(valid, dtype=bool)
@@ -70,7 +76,7 @@ def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float =
         closed = False
         for j in _candidates(poses, n, min_gap, radius, max_candidates):
             edge = _match(pts, valid, poses, j, n, submap_half_width, radius, min_overlap, inlier_distance,
-                          min_constraint)
+                          min_constraint, max_free_conflict)
             if edge is not None:
                 edges.append(edge)
                 closed = True
@@ -123,7 +129,8 @@ def _candidates(poses, n, min_gap, radius, max_candidates):
     return picked
 
 
-def _match(pts, valid, poses, j, n, half_width, radius, min_overlap, inlier_distance, min_constraint):
+def _match(pts, valid, poses, j, n, half_width, radius, min_overlap, inlier_distance, min_constraint,
+           max_free_conflict=0.05):
     target = keyframe_submap(pts, valid, poses, j, half_width)
     src = pts[n][valid[n]]
     guess = se2.relative(poses[j], poses[n])
@@ -137,7 +144,43 @@ def _match(pts, valid, poses, j, n, half_width, radius, min_overlap, inlier_dist
         return None
     if _constraint(src, target, tree, rel, inlier_distance) < min_constraint:
         return None
+    if max_free_conflict < 1 and _closure_conflict(pts, valid, poses, j, n, rel, half_width,
+                                                   2 * inlier_distance) > max_free_conflict:
+        return None
     return Edge(j, n, rel)
+
+
+def free_space_conflict(scan, hits, margin) -> float:
+    """The fraction of ``hits`` (M, 2, in the sensor frame of ``scan``) that lie in the free space
+    ``scan`` (N, 2, its valid returns) observed: nearer the sensor, by more than ``margin``, than
+    the nearest return in bearing and both its neighbours (so that walls seen at a grazing angle
+    do not count). This is the contradiction DeepMapping's loss (eq. 4) penalizes, a point labelled
+    occupied where a beam passed, tested on the beams themselves instead of a trained M-Net."""
+    if len(hits) == 0 or len(scan) < 3:
+        return 0.0
+    bearing = np.arctan2(scan[:, 1], scan[:, 0])
+    order = np.argsort(bearing)
+    bearing, rng = bearing[order], np.hypot(*scan[order].T)
+    step = float(np.median(np.diff(bearing)))
+    near = np.minimum(np.minimum(rng, np.roll(rng, 1)), np.roll(rng, -1))
+    b = np.arctan2(hits[:, 1], hits[:, 0])
+    i = np.clip(np.searchsorted(bearing, b), 1, len(bearing) - 1)
+    i = np.where(np.abs(b - bearing[i - 1]) < np.abs(b - bearing[i]), i - 1, i)
+    inside = np.abs(b - bearing[i]) <= step
+    return float(np.mean(inside & (np.hypot(*hits.T) < near[i] - margin)))
+
+
+def _closure_conflict(pts, valid, poses, j, n, rel, half_width, margin) -> float:
+    """How much a loop closure (keyframe n at ``rel`` from j) makes the map contradict itself: the
+    smaller of the fraction of j's returns in n's free space and the fraction of n's returns in the
+    free space of j's submap keyframes. A wrong placement contradicts both ways; a door closed or a
+    person in the way between the visits, one way only."""
+    into_n = free_space_conflict(pts[n][valid[n]], se2.transform_points(se2.inverse(rel), pts[j][valid[j]]), margin)
+    src = se2.transform_points(rel, pts[n][valid[n]])  # in j's frame
+    into_j = max(free_space_conflict(pts[m][valid[m]], se2.transform_points(se2.relative(poses[m], poses[j]), src),
+                                     margin)
+                 for m in range(max(j - half_width, 0), min(j + half_width + 1, len(pts))))
+    return min(into_n, into_j)
 
 
 def _constraint(src, target, tree, pose, distance) -> float:
