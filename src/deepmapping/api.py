@@ -69,7 +69,8 @@ def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | 
     check_settings(scans, cfg)
     t0 = time.perf_counter()
     if cfg.method in BASELINES:  # initial guesses from a pose file, or from a 2D log's own odometry
-        init = warm_start_poses(scans, cfg) if cfg.warm_start.method == "file" else _log_odometry(scans, cfg)
+        init = (warm_start_poses(scans, cfg) if cfg.warm_start.method == "file"
+                else None if cfg.warm_start.method == "none" else _log_odometry(scans))
         info: dict = {}
         poses = baseline_poses(scans, cfg, cfg.method, init, on_icp_progress, info=info)
         result = _finish(scans, cfg, poses, t0, init=init)
@@ -104,12 +105,10 @@ def baseline_poses(scans: ScanSet, cfg: Config, method: str, init=None, progress
     return run_classical(scans, cfg, method, init, progress, info)
 
 
-def _log_odometry(scans: ScanSet, cfg: Config) -> np.ndarray | None:
-    """A classical method's start on a 2D log (``--method loop-closure``, ``icp-*``): its odometry, as
-    the warm start's ICP uses it (None = the identity, also with ``warm_start.method = "none"``)."""
-    if scans.is_3d or scans.sequence is None or scans.init_poses is None or cfg.warm_start.method == "none":
-        return None
-    return np.asarray(scans.init_poses, dtype=np.float64)
+def _log_odometry(scans: ScanSet) -> np.ndarray | None:
+    """A 2D log's own poses (its odometry), where 2D ICP and loop closure start each pair, as a warm
+    start and as a classical method (``--method loop-closure``, ``icp-*``); None (the identity) otherwise."""
+    return scans.init_poses if not scans.is_3d and scans.sequence is not None else None
 
 
 def warm_start_poses(scans: ScanSet, cfg: Config, progress=None) -> np.ndarray:
@@ -131,9 +130,7 @@ def warm_start_poses(scans: ScanSet, cfg: Config, progress=None) -> np.ndarray:
         else:
             raise ConfigError("warm_start.method is 'file' but no initial pose file was given")
         return np.asarray(init, dtype=np.float64)
-    # 2D ICP starts each pair from the data's own poses (a log's odometry) when it has them
-    seed = scans.init_poses if not scans.is_3d and scans.sequence is not None else None
-    return baseline_poses(scans, cfg, ws.method, seed, progress)
+    return baseline_poses(scans, cfg, ws.method, _log_odometry(scans), progress)
 
 
 def auto_warm_start(scans: ScanSet) -> str:

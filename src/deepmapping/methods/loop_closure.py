@@ -130,7 +130,7 @@ def _candidates(poses, n, min_gap, radius, max_candidates):
 
 
 def _match(pts, valid, poses, j, n, half_width, radius, min_overlap, inlier_distance, min_constraint,
-           max_free_conflict=0.05):
+           max_free_conflict):
     target = keyframe_submap(pts, valid, poses, j, half_width)
     src = pts[n][valid[n]]
     guess = se2.relative(poses[j], poses[n])
