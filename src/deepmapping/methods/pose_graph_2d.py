@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
+from scipy.sparse import coo_matrix
 
 from deepmapping.geometry import se2
 
@@ -38,11 +38,18 @@ def _residuals(x, fixed, ii, jj, z, w):
 
 
 def _sparsity(ii, jj, k):
-    m = lil_matrix((3 * len(ii), 3 * (k - 1)), dtype=np.int8)
-    for e, (i, j) in enumerate(zip(ii, jj)):
-        for node in (i, j):
-            if node > 0:
-                m[3 * e:3 * e + 3, 3 * (node - 1):3 * node] = 1
+    """The Jacobian's pattern: edge e's three residuals depend on the three parameters of each of
+    its two poses (pose 0 is fixed, not a parameter)."""
+    rows, cols = [], []
+    for node in (ii, jj):
+        e = np.flatnonzero(node > 0)
+        r = (3 * e[:, None, None] + np.arange(3)[None, :, None]) + np.zeros(3, dtype=int)[None, None, :]
+        c = (3 * (node[e] - 1))[:, None, None] + np.arange(3)[None, None, :] + np.zeros(3, dtype=int)[None, :, None]
+        rows.append(r.ravel())
+        cols.append(c.ravel())
+    rows, cols = np.concatenate(rows), np.concatenate(cols)
+    m = coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(3 * len(ii), 3 * (k - 1))).tocsr()
+    m.data[:] = 1  # an edge from a pose to itself would count twice
     return m
 
 
