@@ -88,6 +88,14 @@ def test_auto_warm_start_and_errors():
     log = _scans(2, False, 3)
     log.sequence = FullSequence(["0", "1"], np.zeros(2), np.zeros((2, 3)), np.arange(2))
     assert auto_warm_start(log) == "loop-closure"
+    from deepmapping.api import LONG_SEQUENCE
+
+    def scans_2d(k, ordered):
+        return ScanSet(points=np.ones((k, 4, 2), np.float32), valid=np.ones((k, 4), bool), ordered=ordered)
+
+    assert auto_warm_start(scans_2d(LONG_SEQUENCE, True)) == "loop-closure"  # a long trajectory: its loops
+    assert auto_warm_start(scans_2d(LONG_SEQUENCE - 1, True)) == "icp-plane"
+    assert auto_warm_start(scans_2d(LONG_SEQUENCE, False)) == "icp-plane"  # no sequence, no loop
     cfg = load_config("default-3d")
     with pytest.raises(ConfigError, match="3-DoF"):
         baseline_poses(_scans(3, True, 6), cfg, "icp-planar")

@@ -174,7 +174,7 @@ def test_sequential_match_recovers_an_odometry_jump(ring):
     poses = gt[:6].copy()
     truth = se2.relative(gt[4], gt[5])
     guess = truth + np.array([0.8, -0.5, 0.05])
-    rel = _sequential(points, valid, poses, 5, guess, 5, "plane", (0.1, 5.0), 4.0, 0.1)
+    rel = _sequential(points, valid, poses, 5, guess, 5, "plane", (0.1, 5.0), 4.0, 0.1, 0.03)
     assert np.hypot(*(rel[:2] - truth[:2])) < 0.05 and abs(rel[2] - truth[2]) < np.radians(1)
 
 
@@ -210,7 +210,69 @@ def test_a_closure_that_contradicts_the_map_is_not_kept(ring, monkeypatch):
     import deepmapping.methods.loop_closure as lc
 
     points, valid, gt, _ = ring
-    args = (points, valid, gt, 0, 72, 2, 3.0, 0.7, 0.1, 0.2)
-    assert lc._match(*args, 1.0) is not None and lc._match(*args, 0.1) is not None
+    args = (points, valid, gt, 0, 72, 2, 3.0, 0.7, 0.1, 0.2)  # max_shift 3.0
+    assert lc._match(*args, 1.0, 0.05, 3.0) is not None and lc._match(*args, 0.1, 0.05, 3.0) is not None
     monkeypatch.setattr(lc, "_closure_conflict", lambda *a: 0.3)
-    assert lc._match(*args, 0.1) is None and lc._match(*args, 1.0) is not None
+    assert lc._match(*args, 0.1, 0.05, 3.0) is None and lc._match(*args, 1.0, 0.05, 3.0) is not None
+
+
+def test_lengths_follow_the_scans_scale(ring):
+    """The same ring in units 20 times smaller (our simulator's px/512 are of that order): with
+    ``scale`` = the ratio of the scans' ranges (data_scale), the same loops are closed and the
+    trajectory is the same, 20 times smaller; with the metre lengths unscaled, it is not."""
+    from deepmapping.methods.loop_closure import data_scale
+
+    points, valid, gt, odom = ring
+    c = 0.05
+    small = odom.copy()
+    small[:, :2] *= c
+    assert data_scale(points * c, valid) == pytest.approx(c * data_scale(points, valid))
+    scale = data_scale(points * c, valid) / data_scale(points, valid)
+    ref, ref_edges = close_loops(points, valid, odom, min_gap=20, radius=3.0)
+    out, edges = close_loops(points * c, valid, small, min_gap=20, radius=3.0, scale=scale)
+    loops = sum(e.j - e.i > 1 for e in edges)
+    assert abs(loops - sum(e.j - e.i > 1 for e in ref_edges)) <= 1
+    np.testing.assert_allclose(out[:, :2] / c, ref[:, :2], atol=0.02)
+    np.testing.assert_allclose(se2.wrap_angle(out[:, 2] - ref[:, 2]), 0, atol=0.01)
+    unscaled, _ = close_loops(points * c, valid, small, min_gap=20, radius=3.0)
+    assert np.abs(unscaled[:, :2] / c - ref[:, :2]).max() > 0.1
+
+
+def test_loop_closure_without_odometry_has_no_odometry_prior(monkeypatch):
+    """Scans with no odometry (a folder of scans): each match starts from the identity and no prior
+    holds it there; the lengths follow the scans' ranges."""
+    import deepmapping.methods.registry as registry
+
+    seen = {}
+
+    def fake(points, valid, init, **kw):
+        seen.update(kw)
+        return init, []
+
+    monkeypatch.setattr(registry, "close_loops", fake)
+    rng = np.random.default_rng(0)
+    angles = np.linspace(-np.pi, np.pi, 64, endpoint=False)
+    points = np.stack([np.column_stack([np.cos(angles), np.sin(angles)]) * 4.0] * 3) + rng.normal(0, 0.01, (3, 64, 2))
+    scans = ScanSet(points=points.astype(np.float32), valid=np.ones((3, 64), bool), ordered=True)
+    cfg = load_config()
+    baseline_poses(scans, cfg, "loop-closure")
+    assert seen["odometry_sigma"] is None
+    assert seen["scale"] == pytest.approx(2.0, rel=0.01)  # median range 4 m / 2 m
+    baseline_poses(scans, cfg.with_overrides({"loop.scale": 0.5}), "loop-closure")
+    assert seen["scale"] == 0.5
+
+
+def test_a_closure_further_than_the_drift_allows_is_not_kept(ring):
+    """The poses put keyframe 72 half a metre from where its match to keyframe 0 puts it: kept when
+    the drift since the last closure allows a metre (3.0), dropped when it allows 0.3 m (a repeated
+    room matches as well as the true one, but far from where the sequential matches say we are)."""
+    import deepmapping.methods.loop_closure as lc
+
+    points, valid, gt, _ = ring
+    poses = gt.copy()
+    poses[72] = se2.compose(poses[72], [0.3, 0.4, 0.0])
+    args = (points, valid, poses, 0, 72, 2)
+    rest = (0.7, 0.1, 0.2, 1.0, 0.05, 3.0)
+    kept = lc._match(*args, 3.0, *rest)
+    assert kept is not None and np.hypot(*(kept.z[:2] - se2.relative(gt[0], gt[72])[:2])) < 0.05
+    assert lc._match(*args, 0.3, *rest) is None

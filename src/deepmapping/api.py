@@ -133,16 +133,23 @@ def warm_start_poses(scans: ScanSet, cfg: Config, progress=None) -> np.ndarray:
     return baseline_poses(scans, cfg, ws.method, _log_odometry(scans), progress)
 
 
+# warm_start "auto" for ordered 2D scans: loop closures from this many scans on (simulated 1024 and
+# 4096 scans: ICP drifts 9-55 px, beyond DeepMapping's reach; the 2D suite's 256 keep icp-plane)
+LONG_SEQUENCE = 512
+
+
 def auto_warm_start(scans: ScanSet) -> str:
     """warm_start "auto": planar ICP for AVD-like depth images with planar poses (6-DoF ICP from the
     identity fails on their 30 deg turns), point-to-plane ICP for 6-DoF depth images (handheld:
     on 7-Scenes 6-10 mm, point-to-point 11-14 mm, no registration 60 mm, docs/results.md), point
     clouds and 2D scans; loop closures for keyframed 2D logs (thousands of scans, loops of
-    hundreds of metres); an ordered 3D sequence's own recorded poses where the loader read them
-    (3DTK's .pose files: slam6D starts from them; 1.7 cm from its result on our sample, every ICP
-    variant 3-16 cm), held by the odometry factor (resolve_odometry_sigma)."""
+    hundreds of metres) and for ordered 2D scans of ``LONG_SEQUENCE`` or more; an ordered 3D
+    sequence's own recorded poses where the loader read them (3DTK's .pose files: slam6D starts
+    from them; 1.7 cm from its result on our sample, every ICP variant 3-16 cm), held by the
+    odometry factor (resolve_odometry_sigma)."""
     if not scans.is_3d:
-        return "loop-closure" if scans.sequence is not None else "icp-plane"
+        long = scans.sequence is not None or (scans.ordered and scans.num_scans >= LONG_SEQUENCE)
+        return "loop-closure" if long else "icp-plane"
     if scans.recorded_poses and scans.init_poses is not None and scans.ordered:
         return "file"
     return "icp-planar" if scans.grid_shape is not None and scans.pose_dof == 3 else "icp-plane"

@@ -260,8 +260,14 @@ class ICPConfig(_Section):
 
 
 class LoopClosureConfig(_Section):
-    """``--method loop-closure`` / ``--warm-start loop-closure`` (2D, long sequences; lengths in
-    the scans' units; methods.loop_closure.close_loops takes these as its keyword arguments)."""
+    """``--method loop-closure`` / ``--warm-start loop-closure`` (2D, long sequences;
+    methods.loop_closure.close_loops takes these as its keyword arguments). The lengths below
+    (metres) are for scans whose median return range is 2 m, the indoor CARMEN logs they were
+    tuned on; ``scale`` multiplies every one of them (and the pose graph's translation sigma)."""
+
+    # "auto": the scans' median return range / 2 m (methods.loop_closure.data_scale: intel, fr079,
+    # mit-csail 0.98-1.04; a hospital log with 10 m ranges 4.9; our simulator, in px/512, 0.10)
+    scale: PosFloat | Literal["auto"] = "auto"
 
     # earlier keyframes within ``radius`` of a new one and at least ``min_gap`` keyframes back are
     # matched (up to ``max_candidates``); a match is kept when ``min_overlap`` of its points lie
@@ -283,6 +289,10 @@ class LoopClosureConfig(_Section):
     # other visit's beams passed) no more than this: the smaller of the two visits' fractions of
     # returns in the other's free space (1 = no test; 0.05 from fr079's kept closures, 99th percentile)
     max_free_conflict: float = Field(0.05, ge=0, le=1)
+    # ... and where it moves the keyframe by at most this fraction of the path driven since the last
+    # kept closure (at least 3 x inlier_distance, at most radius): a repeated room matches as well as
+    # the true one, but far from where the sequential matches put the keyframe
+    max_drift: PosFloat = 0.1
 
 
 class WarmStartConfig(_Section):

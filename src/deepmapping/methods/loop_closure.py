@@ -11,7 +11,9 @@ submap around up to ``max_candidates`` earlier keyframes near its current estima
 points fall within ``inlier_distance`` of the submap, the matched walls fix both directions of
 the translation (``min_constraint``) and the match puts no more than ``max_free_conflict`` of
 either visit's returns where the other's beams passed (the contradiction DeepMapping's loss
-penalizes); each kept loop closure triggers a pose-graph optimization
+penalizes) and it moves the keyframe no further than the drift since the last closure allows
+(``max_drift``: repeated rooms); each kept loop closure that the poses do not already satisfy
+triggers a pose-graph optimization
 (:mod:`deepmapping.methods.pose_graph_2d`, whose Cauchy kernel down-weights a wrong one that got
 through), so drift is removed before the next keyframe looks for its neighbours. The result
 warm-starts DeepMapping.
@@ -29,7 +31,20 @@ from deepmapping.geometry.normals import pca_normals
 from deepmapping.methods.icp import icp_2d
 from deepmapping.methods.pose_graph_2d import Edge, optimize_pose_graph
 
-__all__ = ["close_loops"]
+__all__ = ["close_loops", "data_scale"]
+
+# the median return range the lengths of close_loops are given for (metres: the indoor CARMEN logs
+# intel, fr079 and mit-csail, 1.96-2.08 m)
+REFERENCE_RANGE = 2.0
+# point-to-line residuals' standard deviation against the odometry prior (metres, at scale 1)
+POINT_SIGMA = 0.03
+
+
+def data_scale(points, valid) -> float:
+    """How much larger than the indoor logs' the scans' ranges are: their median return range over
+    ``REFERENCE_RANGE`` (``loop.scale`` "auto"; points (K, N, 2), valid (K, N))."""
+    ranges = np.hypot(*np.asarray(points)[np.asarray(valid, dtype=bool)].T)
+    return float(np.median(ranges)) / REFERENCE_RANGE if len(ranges) else 1.0
 
 
 def keyframe_submap(points, valid, poses, center, half_width):
@@ -48,7 +63,8 @@ def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float =
                 min_overlap: float = 0.7, inlier_distance: float = 0.1, submap_half_width: int = 2,
                 sequential_submap: int = 5, sequential_method: str = "plane",
                 odometry_sigma: tuple[float, float] | None = (0.1, 5.0), min_constraint: float = 0.2,
-                max_free_conflict: float = 0.05,
+                max_free_conflict: float = 0.05, max_drift: float = 0.1, scale: float = 1.0,
+                edge_sigma: float = 0.05,
                 progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, list[Edge]]:
     """Poses (K, 3) after loop closing, and the pose-graph edges (sequential and loop closures).
 
@@ -59,35 +75,56 @@ def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float =
     ``min_constraint``: a loop closure is kept only where the matched geometry fixes both
     directions of the translation (see ``_constraint``); corridors alias along themselves.
     ``max_free_conflict``: ... and where it contradicts the free space seen (``_closure_conflict``;
-    1 = no such test).
+    1 = no such test). ``max_drift``: a loop closure may move the keyframe by at most this fraction
+    of the path driven since the last kept closure (at least 3 x ``inlier_distance``, at most
+    ``radius``): a place that looks like another (a repeated room) matches as well as the true
+    one, but far from where the sequential matches put the keyframe. ``scale`` multiplies every
+    length (``radius``, ``inlier_distance``, the odometry's metres and ``edge_sigma``, the pose
+    graph's translation standard deviation), for scans whose ranges are not those of the indoor
+    logs the defaults were tuned on (``data_scale``).
     """
+    radius, inlier_distance, edge_sigma = radius * scale, inlier_distance * scale, edge_sigma * scale
+    if odometry_sigma is not None:
+        odometry_sigma = (odometry_sigma[0] * scale, odometry_sigma[1])
     pts = np.asarray(points, dtype=np.float64)
     valid = np.asarray(valid, dtype=bool)
     init = np.asarray(init_poses, dtype=np.float64)
     k = len(pts)
     poses = init[:1].copy()
     edges: list[Edge] = []
+    last_closed = 0
     for n in range(1, k):
         guess = se2.relative(init[n - 1], init[n])
         rel = _sequential(pts, valid, poses, n, guess, sequential_submap, sequential_method, odometry_sigma,
-                          radius, inlier_distance)
-        edges.append(Edge(n - 1, n, rel))
+                          radius, inlier_distance, POINT_SIGMA * scale)
+        edges.append(Edge(n - 1, n, rel, sigma_t=edge_sigma))
         poses = np.vstack([poses, se2.compose(poses[-1], rel)])
-        closed = False
-        for j in _candidates(poses, n, min_gap, radius, max_candidates):
-            edge = _match(pts, valid, poses, j, n, submap_half_width, radius, min_overlap, inlier_distance,
-                          min_constraint, max_free_conflict)
-            if edge is not None:
-                edges.append(edge)
-                closed = True
-        if closed:
+        travelled = float(np.hypot(*np.diff(poses[last_closed:, :2], axis=0).T).sum())
+        max_shift = min(radius, max(3 * inlier_distance, max_drift * travelled))
+        closing = [_match(pts, valid, poses, j, n, submap_half_width, max_shift, min_overlap, inlier_distance,
+                          min_constraint, max_free_conflict, edge_sigma, radius)
+                   for j in _candidates(poses, n, min_gap, radius, max_candidates)]
+        closing = [e for e in closing if e is not None]
+        edges += closing
+        if closing:
+            last_closed = n
+        if any(_disagrees(poses, e, inlier_distance / 2) for e in closing):
             poses = optimize_pose_graph(poses, edges)
         if progress is not None:
             progress(n, k - 1)
     return optimize_pose_graph(poses, edges), edges
 
 
-def _sequential(pts, valid, poses, n, guess, submap, method, odometry_sigma, radius, inlier_distance):
+def _disagrees(poses, edge, distance) -> bool:
+    """A loop closure the current poses do not already satisfy (by more than ``distance``, or 1
+    degree): only then is the pose graph optimized again before the next keyframe (a trajectory
+    that keeps revisiting places closes thousands of loops, most of them already in place; the
+    last optimization takes every edge)."""
+    r = se2.relative(poses[edge.i], poses[edge.j]) - edge.z
+    return bool(np.hypot(r[0], r[1]) > distance or abs(se2.wrap_angle(r[2])) > np.radians(1.0))
+
+
+def _sequential(pts, valid, poses, n, guess, submap, method, odometry_sigma, radius, inlier_distance, point_sigma):
     """The motion from keyframe n-1 to n: three matches from the odometry ``guess``, the one that
     puts most of the scan within ``inlier_distance`` of the submap of recent keyframes wins:
     (1) point-to-line against the submap, with the odometry prior; (2) point-to-point against the
@@ -98,7 +135,7 @@ def _sequential(pts, valid, poses, n, guess, submap, method, odometry_sigma, rad
     prior = None
     if odometry_sigma is not None and method == "plane":
         prior = (odometry_sigma[0], np.radians(odometry_sigma[1]))
-    first, _ = icp_2d(src, target, init=guess, method=method, prior_sigma=prior)
+    first, _ = icp_2d(src, target, init=guess, method=method, prior_sigma=prior, point_sigma=point_sigma)
     hypotheses = [first, icp_2d(src, pts[n - 1][valid[n - 1]], init=guess, method="point")[0]]
     coarse, _ = icp_2d(src, target, init=guess, method="point", max_correspondence_distance=radius / 4, trim=None)
     hypotheses.append(icp_2d(src, target, init=coarse, method=method, prior_sigma=None)[0])
@@ -115,7 +152,7 @@ def _recent(points, valid, poses, last, count):
 
 
 def _candidates(poses, n, min_gap, radius, max_candidates):
-    if n < min_gap:
+    if n < min_gap or max_candidates == 0:
         return []
     old = poses[: n - min_gap + 1]
     d = np.hypot(*(old[:, :2] - poses[n, :2]).T)
@@ -129,15 +166,15 @@ def _candidates(poses, n, min_gap, radius, max_candidates):
     return picked
 
 
-def _match(pts, valid, poses, j, n, half_width, radius, min_overlap, inlier_distance, min_constraint,
-           max_free_conflict):
+def _match(pts, valid, poses, j, n, half_width, max_shift, min_overlap, inlier_distance, min_constraint,
+           max_free_conflict, edge_sigma, radius):
     target = keyframe_submap(pts, valid, poses, j, half_width)
     src = pts[n][valid[n]]
     guess = se2.relative(poses[j], poses[n])
     coarse, _ = icp_2d(src, target, init=guess, method="point", max_correspondence_distance=radius / 2, trim=None)
     rel, _ = icp_2d(src, target, init=coarse, method="point", max_correspondence_distance=3 * inlier_distance,
                     trim=None)
-    if np.hypot(*(rel[:2] - guess[:2])) > radius:
+    if np.hypot(*(rel[:2] - guess[:2])) > max_shift:  # further than the drift since the last closure
         return None
     tree = cKDTree(target)
     if _overlap(src, tree, rel, inlier_distance) < min_overlap:
@@ -147,7 +184,7 @@ def _match(pts, valid, poses, j, n, half_width, radius, min_overlap, inlier_dist
     if max_free_conflict < 1 and _closure_conflict(pts, valid, poses, j, n, rel, half_width,
                                                    2 * inlier_distance) > max_free_conflict:
         return None
-    return Edge(j, n, rel)
+    return Edge(j, n, rel, sigma_t=edge_sigma)
 
 
 def free_space_conflict(scan, hits, margin) -> float:

@@ -22,7 +22,7 @@ from deepmapping.methods.icp import incremental_icp
 from deepmapping.methods.icp3d import incremental_icp_3d
 from deepmapping.methods.icp_planar import incremental_icp_planar
 from deepmapping.methods.kiss_odometry import kiss_icp_poses
-from deepmapping.methods.loop_closure import close_loops
+from deepmapping.methods.loop_closure import close_loops, data_scale
 from deepmapping.methods.multiway import multiway_registration
 from deepmapping.methods.pso import incremental_pso
 
@@ -104,11 +104,15 @@ def _icp_plane(scans, cfg, init=None, progress=None):
 @_method("loop-closure", (2,), "incremental ICP, loop closures and a pose graph", "2D logs",
          hint_other_dims=" (3D: multiway)")
 def _loop_closure(scans, cfg, init=None, progress=None):
-    """Each pair started from ``init`` (e.g. odometry) or from the identity (methods.loop_closure)."""
-    settings = cfg.loop.model_dump() | {"odometry_sigma": tuple(cfg.loop.odometry_sigma) or None}
+    """Each pair started from ``init`` (e.g. odometry, which then also holds the sequential matches,
+    ``loop.odometry_sigma``) or from the identity (no odometry, no prior; methods.loop_closure);
+    lengths scaled to the scans' ranges (``loop.scale``, methods.loop_closure.data_scale)."""
+    scale = data_scale(scans.points, scans.valid) if cfg.loop.scale == "auto" else cfg.loop.scale
+    odometry_sigma = tuple(cfg.loop.odometry_sigma) if init is not None else ()
+    settings = cfg.loop.model_dump() | {"odometry_sigma": odometry_sigma or None, "scale": scale}
     guess = scans.identity_poses() if init is None else init
-    poses, _ = close_loops(scans.points, scans.valid, guess, **settings, progress=progress)
-    return poses
+    poses, edges = close_loops(scans.points, scans.valid, guess, **settings, progress=progress)
+    return poses, {"loop_scale": scale, "loop_closures": sum(e.j - e.i > 1 for e in edges)}
 
 
 @_method("icp-planar", (3,), "ICP over (x, z, yaw) with yaw hypotheses", "3D, planar poses")
