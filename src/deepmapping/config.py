@@ -289,10 +289,10 @@ class LoopClosureConfig(_Section):
     # other visit's beams passed) no more than this: the smaller of the two visits' fractions of
     # returns in the other's free space (1 = no test; 0.05 from fr079's kept closures, 99th percentile)
     max_free_conflict: float = Field(0.05, ge=0, le=1)
-    # ... and where it moves the keyframe by at most this fraction of the path driven since the last
-    # kept closure (at least 3 x inlier_distance, at most radius): a repeated room matches as well as
-    # the true one, but far from where the sequential matches put the keyframe
-    max_drift: PosFloat = 0.1
+    # ... and where it moves the keyframe by at most this fraction of the shortest path between the
+    # two through the pose graph (at least 3 x inlier_distance, at most radius): a repeated room
+    # matches as well as the true one, but further off than drift along that path explains
+    max_drift: PosFloat = 0.2
 
 
 class WarmStartConfig(_Section):

@@ -11,7 +11,7 @@ submap around up to ``max_candidates`` earlier keyframes near its current estima
 points fall within ``inlier_distance`` of the submap, the matched walls fix both directions of
 the translation (``min_constraint``) and the match puts no more than ``max_free_conflict`` of
 either visit's returns where the other's beams passed (the contradiction DeepMapping's loss
-penalizes) and it moves the keyframe no further than the drift since the last closure allows
+penalizes) and it moves the keyframe no further than drift along the pose graph between the two allows
 (``max_drift``: repeated rooms); each kept loop closure that the poses do not already satisfy
 triggers a pose-graph optimization
 (:mod:`deepmapping.methods.pose_graph_2d`, whose Cauchy kernel down-weights a wrong one that got
@@ -24,6 +24,8 @@ from __future__ import annotations
 from typing import Callable
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
 from deepmapping.geometry import se2
@@ -63,7 +65,7 @@ def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float =
                 min_overlap: float = 0.7, inlier_distance: float = 0.1, submap_half_width: int = 2,
                 sequential_submap: int = 5, sequential_method: str = "plane",
                 odometry_sigma: tuple[float, float] | None = (0.1, 5.0), min_constraint: float = 0.2,
-                max_free_conflict: float = 0.05, max_drift: float = 0.1, scale: float = 1.0,
+                max_free_conflict: float = 0.05, max_drift: float = 0.2, scale: float = 1.0,
                 edge_sigma: float = 0.05,
                 progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, list[Edge]]:
     """Poses (K, 3) after loop closing, and the pose-graph edges (sequential and loop closures).
@@ -76,9 +78,10 @@ def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float =
     directions of the translation (see ``_constraint``); corridors alias along themselves.
     ``max_free_conflict``: ... and where it contradicts the free space seen (``_closure_conflict``;
     1 = no such test). ``max_drift``: a loop closure may move the keyframe by at most this fraction
-    of the path driven since the last kept closure (at least 3 x ``inlier_distance``, at most
-    ``radius``): a place that looks like another (a repeated room) matches as well as the true
-    one, but far from where the sequential matches put the keyframe. ``scale`` multiplies every
+    of the shortest path between the two keyframes through the pose graph (at least 3 x
+    ``inlier_distance``, at most ``radius``): a place that looks like another (a repeated room)
+    matches as well as the true one, but further from where the graph puts the keyframe than
+    drift along that path can explain. ``scale`` multiplies every
     length (``radius``, ``inlier_distance``, the odometry's metres and ``edge_sigma``, the pose
     graph's translation standard deviation), for scans whose ranges are not those of the indoor
     logs the defaults were tuned on (``data_scale``).
@@ -92,27 +95,39 @@ def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float =
     k = len(pts)
     poses = init[:1].copy()
     edges: list[Edge] = []
-    last_closed = 0
     for n in range(1, k):
         guess = se2.relative(init[n - 1], init[n])
         rel = _sequential(pts, valid, poses, n, guess, sequential_submap, sequential_method, odometry_sigma,
                           radius, inlier_distance, POINT_SIGMA * scale)
         edges.append(Edge(n - 1, n, rel, sigma_t=edge_sigma))
         poses = np.vstack([poses, se2.compose(poses[-1], rel)])
-        travelled = float(np.hypot(*np.diff(poses[last_closed:, :2], axis=0).T).sum())
-        max_shift = min(radius, max(3 * inlier_distance, max_drift * travelled))
-        closing = [_match(pts, valid, poses, j, n, submap_half_width, max_shift, min_overlap, inlier_distance,
+        candidates = _candidates(poses, n, min_gap, radius, max_candidates)
+        path = _graph_distances(edges, n, candidates, radius / max_drift)
+        closing = [_match(pts, valid, poses, j, n, submap_half_width,
+                          min(radius, max(3 * inlier_distance, max_drift * path[j])), min_overlap, inlier_distance,
                           min_constraint, max_free_conflict, edge_sigma, radius)
-                   for j in _candidates(poses, n, min_gap, radius, max_candidates)]
+                   for j in candidates]
         closing = [e for e in closing if e is not None]
         edges += closing
-        if closing:
-            last_closed = n
         if any(_disagrees(poses, e, inlier_distance / 2) for e in closing):
             poses = optimize_pose_graph(poses, edges)
         if progress is not None:
             progress(n, k - 1)
     return optimize_pose_graph(poses, edges), edges
+
+
+def _graph_distances(edges, n, targets, limit) -> dict:
+    """The length of the shortest path from keyframe n to each of ``targets`` through the pose graph
+    (edge length = its translation; a loop closure is a short cut), at most ``limit``: how far
+    drift can have carried n from each of them."""
+    if not targets:
+        return {}
+    ii = np.array([e.i for e in edges])
+    jj = np.array([e.j for e in edges])
+    w = np.array([max(float(np.hypot(e.z[0], e.z[1])), 1e-12) for e in edges])
+    graph = coo_matrix((w, (ii, jj)), shape=(n + 1, n + 1)).tocsr()
+    dist = dijkstra(graph, directed=False, indices=n, limit=limit)
+    return {j: float(min(dist[j], limit)) for j in targets}
 
 
 def _disagrees(poses, edge, distance) -> bool:
@@ -174,7 +189,7 @@ def _match(pts, valid, poses, j, n, half_width, max_shift, min_overlap, inlier_d
     coarse, _ = icp_2d(src, target, init=guess, method="point", max_correspondence_distance=radius / 2, trim=None)
     rel, _ = icp_2d(src, target, init=coarse, method="point", max_correspondence_distance=3 * inlier_distance,
                     trim=None)
-    if np.hypot(*(rel[:2] - guess[:2])) > max_shift:  # further than the drift since the last closure
+    if np.hypot(*(rel[:2] - guess[:2])) > max_shift:  # further than the drift between the two allows
         return None
     tree = cKDTree(target)
     if _overlap(src, tree, rel, inlier_distance) < min_overlap:
