@@ -276,3 +276,14 @@ def test_a_closure_further_than_the_drift_allows_is_not_kept(ring):
     kept = lc._match(*args, 3.0, *rest)
     assert kept is not None and np.hypot(*(kept.z[:2] - se2.relative(gt[0], gt[72])[:2])) < 0.05
     assert lc._match(*args, 0.3, *rest) is None
+
+
+def test_graph_distance_takes_loop_closures_as_short_cuts():
+    from deepmapping.methods.loop_closure import _graph_distances
+
+    step = np.array([1.0, 0.0, 0.0])
+    edges = [Edge(i, i + 1, step) for i in range(4)]
+    assert _graph_distances(edges, 4, [0, 2], 10.0) == pytest.approx({0: 4.0, 2: 2.0})
+    edges.append(Edge(0, 3, np.array([0.0, 0.1, 0.0])))  # a loop closure: 3 is next to 0
+    assert _graph_distances(edges, 4, [0, 1, 2], 10.0) == pytest.approx({0: 1.1, 1: 2.1, 2: 2.0})
+    assert _graph_distances(edges, 4, [0, 1], 1.5) == pytest.approx({0: 1.1, 1: 1.5})  # capped at the limit
