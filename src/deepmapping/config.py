@@ -299,7 +299,7 @@ class WarmStartConfig(_Section):
     # "auto" (3D): icp-planar for AVD-like depth images with planar poses (6-DoF ICP from the
     # identity is wrong on most of their 30 deg turns), icp-plane for 6-DoF depth images
     # (handheld, 7-Scenes) and point-cloud sequences
-    # 2D: icp-plane for scans, loop-closure for keyframed logs (CARMEN)
+    # 2D: icp-plane for scans, loop-closure for keyframed logs (CARMEN) and ordered scans of 512 or more
     method: WarmStart = "auto"
     path: str | None = None  # initial poses file (method="file")
 
