@@ -11,12 +11,12 @@ submap around up to ``max_candidates`` earlier keyframes near its current estima
 points fall within ``inlier_distance`` of the submap, the matched walls fix both directions of
 the translation (``min_constraint``) and the match puts no more than ``max_free_conflict`` of
 either visit's returns where the other's beams passed (the contradiction DeepMapping's loss
-penalizes) and it moves the keyframe no further than drift along the pose graph between the two allows
-(``max_drift``: repeated rooms); each kept loop closure that the poses do not already satisfy
-triggers a pose-graph optimization
-(:mod:`deepmapping.methods.pose_graph_2d`, whose Cauchy kernel down-weights a wrong one that got
-through), so drift is removed before the next keyframe looks for its neighbours. The result
-warm-starts DeepMapping.
+penalizes) and it moves the keyframe no further than drift along the pose graph between the
+two allows (``max_drift``: repeated rooms); each kept loop closure that the poses do not already
+satisfy triggers a pose-graph optimization (:mod:`deepmapping.methods.pose_graph_2d`, whose Cauchy
+kernel down-weights a wrong one that got through), so drift is removed before the next keyframe
+looks for its neighbours. Lengths follow the scans' ranges (``scale``, :func:`data_scale`). The
+result warm-starts DeepMapping.
 """
 
 from __future__ import annotations
@@ -81,10 +81,10 @@ def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float =
     of the shortest path between the two keyframes through the pose graph (at least 3 x
     ``inlier_distance``, at most ``radius``): a place that looks like another (a repeated room)
     matches as well as the true one, but further from where the graph puts the keyframe than
-    drift along that path can explain. ``scale`` multiplies every
-    length (``radius``, ``inlier_distance``, the odometry's metres and ``edge_sigma``, the pose
-    graph's translation standard deviation), for scans whose ranges are not those of the indoor
-    logs the defaults were tuned on (``data_scale``).
+    drift along that path can explain. ``scale`` multiplies every length (``radius``,
+    ``inlier_distance``, the odometry's metres, ``edge_sigma``, the pose graph's translation
+    standard deviation, and the point-to-line sigma against the odometry prior), for scans whose
+    ranges are not those of the indoor logs the defaults were tuned on (``data_scale``).
     """
     radius, inlier_distance, edge_sigma = radius * scale, inlier_distance * scale, edge_sigma * scale
     if odometry_sigma is not None:
