@@ -122,10 +122,10 @@ def _graph_distances(edges, n, targets, limit) -> dict:
     drift can have carried n from each of them."""
     if not targets:
         return {}
-    ii = np.array([e.i for e in edges])
-    jj = np.array([e.j for e in edges])
-    w = np.array([max(float(np.hypot(e.z[0], e.z[1])), 1e-12) for e in edges])
-    graph = coo_matrix((w, (ii, jj)), shape=(n + 1, n + 1)).tocsr()
+    ij = np.array([(e.i, e.j) for e in edges])
+    z = np.array([e.z for e in edges])
+    w = np.maximum(np.hypot(z[:, 0], z[:, 1]), 1e-12)  # a zero would be no edge at all
+    graph = coo_matrix((w, (ij[:, 0], ij[:, 1])), shape=(n + 1, n + 1)).tocsr()
     dist = dijkstra(graph, directed=False, indices=n, limit=limit)
     return {j: float(min(dist[j], limit)) for j in targets}
 

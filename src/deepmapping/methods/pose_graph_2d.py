@@ -40,14 +40,11 @@ def _residuals(x, fixed, ii, jj, z, w):
 def _sparsity(ii, jj, k):
     """The Jacobian's pattern: edge e's three residuals depend on the three parameters of each of
     its two poses (pose 0 is fixed, not a parameter)."""
-    rows, cols = [], []
-    for node in (ii, jj):
-        e = np.flatnonzero(node > 0)
-        r = (3 * e[:, None, None] + np.arange(3)[None, :, None]) + np.zeros(3, dtype=int)[None, None, :]
-        c = (3 * (node[e] - 1))[:, None, None] + np.arange(3)[None, None, :] + np.zeros(3, dtype=int)[None, :, None]
-        rows.append(r.ravel())
-        cols.append(c.ravel())
-    rows, cols = np.concatenate(rows), np.concatenate(cols)
+    three = np.arange(3)
+    blocks = [np.broadcast_arrays((3 * e)[:, None, None] + three[:, None], (3 * (node[e] - 1))[:, None, None] + three)
+              for node in (np.asarray(ii), np.asarray(jj)) for e in [np.flatnonzero(node > 0)]]
+    rows = np.concatenate([r.ravel() for r, _ in blocks])
+    cols = np.concatenate([c.ravel() for _, c in blocks])
     m = coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(3 * len(ii), 3 * (k - 1))).tocsr()
     m.data[:] = 1  # an edge from a pose to itself would count twice
     return m

@@ -108,8 +108,8 @@ def _loop_closure(scans, cfg, init=None, progress=None):
     ``loop.odometry_sigma``) or from the identity (no odometry, no prior; methods.loop_closure);
     lengths scaled to the scans' ranges (``loop.scale``, methods.loop_closure.data_scale)."""
     scale = data_scale(scans.points, scans.valid) if cfg.loop.scale == "auto" else cfg.loop.scale
-    odometry_sigma = tuple(cfg.loop.odometry_sigma) if init is not None else ()
-    settings = cfg.loop.model_dump() | {"odometry_sigma": odometry_sigma or None, "scale": scale}
+    odometry_sigma = (tuple(cfg.loop.odometry_sigma) or None) if init is not None else None
+    settings = cfg.loop.model_dump() | {"odometry_sigma": odometry_sigma, "scale": scale}
     guess = scans.identity_poses() if init is None else init
     poses, edges = close_loops(scans.points, scans.valid, guess, **settings, progress=progress)
     return poses, {"loop_scale": scale, "loop_closures": sum(e.j - e.i > 1 for e in edges)}
