@@ -287,3 +287,44 @@ def test_graph_distance_takes_loop_closures_as_short_cuts():
     edges.append(Edge(0, 3, np.array([0.0, 0.1, 0.0])))  # a loop closure: 3 is next to 0
     assert _graph_distances(edges, 4, [0, 1, 2], 10.0) == pytest.approx({0: 1.1, 1: 2.1, 2: 2.0})
     assert _graph_distances(edges, 4, [0, 1], 1.5) == pytest.approx({0: 1.1, 1: 1.5})  # capped at the limit
+
+
+def test_a_kept_closure_is_refined_over_the_same_facing_pairs(ring, monkeypatch):
+    """``refine``: the closure found by point-to-point ICP is refined by point-to-line ICP with the
+    submap's sensor positions (the faces test below); off, it is returned as matched."""
+    import deepmapping.methods.loop_closure as lc
+
+    points, valid, gt, _ = ring
+    args = (points, valid, gt, 0, 72, 2, 3.0, 0.7, 0.1, 0.2, 0.05, 0.05, 3.0)  # max_shift 3.0
+    calls = []
+    real = lc.icp_2d
+    monkeypatch.setattr(lc, "icp_2d", lambda *a, **k: calls.append(k) or real(*a, **k))
+    plain = lc._match(*args, False)
+    assert len(calls) == 2 and all(k.get("target_origins") is None for k in calls)
+    refined = lc._match(*args, True)
+    assert len(calls) == 5 and calls[-1]["method"] == "plane" and len(calls[-1]["target_origins"]) > 0
+    true = se2.relative(gt[0], gt[72])
+    assert np.hypot(*(refined.z[:2] - true[:2])) < max(0.02, np.hypot(*(plain.z[:2] - true[:2])))
+
+
+def test_icp_does_not_match_the_two_faces_of_a_wall():
+    """A wall 5 cm thick between two sensors: the target's sensor (0, -1) sees its lower face, the
+    source's (0, 1.05) its upper face; both see a floor and a side wall. Matched as points, the upper
+    face is pulled onto the lower one and the source ends too low; with the sensors' positions
+    (``target_origins``) the two faces are told apart and the match stays at the truth."""
+    from deepmapping.methods.icp import icp_2d
+
+    w, s = 0.05, np.linspace(0.0, 1.0, 101)
+    lower = np.column_stack([s - 0.5, np.zeros_like(s)])
+    upper = np.column_stack([s - 0.5, np.full_like(s, w)])
+    floor = np.column_stack([1.0 + 2.0 * s, np.full_like(s, -3.0)])
+    side = np.column_stack([np.full_like(s, 3.0), -3.0 + 4.5 * s])
+    target = np.concatenate([lower, floor, side])
+    truth = np.array([0.0, 1.0 + w, 0.0])  # the source's sensor in the target's frame
+    source = np.concatenate([upper, floor, side]) - truth[:2]
+    origins = np.tile([0.0, -1.0], (len(target), 1))
+    kw = dict(init=truth, method="point", max_correspondence_distance=0.2, trim=None)
+    plain, _ = icp_2d(source, target, **kw)
+    seen, _ = icp_2d(source, target, target_origins=origins, **kw)
+    assert plain[1] < truth[1] - w / 10, plain  # pulled towards the lower face
+    np.testing.assert_allclose(seen, truth, atol=1e-6)

@@ -293,6 +293,10 @@ class LoopClosureConfig(_Section):
     # two through the pose graph (at least 3 x inlier_distance, at most radius): a repeated room
     # matches as well as the true one, but further off than drift along that path explains
     max_drift: PosFloat = 0.2
+    # a kept closure is refined by point-to-line ICP within inlier_distance over the pairs whose two
+    # sensors see the surface from the same side: a wall seen from both rooms would otherwise pull the
+    # match by its thickness towards its other face
+    refine_closures: bool = True
 
 
 class WarmStartConfig(_Section):

@@ -38,6 +38,7 @@ def icp_2d(
     normal_k: int = 6,
     prior_sigma: tuple[float, float] | None = None,
     point_sigma: float = 0.03,
+    target_origins=None,
 ) -> tuple[np.ndarray, dict]:
     """Register ``source`` (N, 2) onto ``target`` (M, 2); returns (pose (3,), info).
 
@@ -52,6 +53,10 @@ def icp_2d(
     (e.g. odometry) with these standard deviations, against point-to-line residuals of
     ``point_sigma``: where the scans leave a direction unconstrained (a straight corridor),
     the pose stays near ``init`` instead of sliding.
+    ``target_origins`` (M, 2): the sensor position each target point was seen from; then a pair is
+    kept only where both sensors see the surface from the same side (the target point's normal
+    against each one's line of sight; the source's sensor at its frame's origin): the two faces of a
+    wall seen from two rooms are not matched to each other.
     info: fitness (fraction of source points with an inlier correspondence), rmse (RMS
     inlier point-to-point distance), iterations, converged.
     """
@@ -60,6 +65,9 @@ def icp_2d(
     if prior_sigma is not None and method != "plane":
         raise ValueError("prior_sigma needs method='plane'")
     src = _clean(source, "source")
+    if target_origins is not None:
+        finite = np.isfinite(np.asarray(target, dtype=np.float64)).all(axis=1)
+        target_origins = np.asarray(target_origins, dtype=np.float64)[finite]
     tgt = _clean(target, "target")
     pose = np.asarray(init, dtype=np.float64).reshape(3).copy()
     prior0 = pose.copy()
@@ -72,7 +80,8 @@ def icp_2d(
     spacing = float(np.median(spacing_d[:, 1]))
     scale = float(np.sqrt(np.mean(np.sum((tgt - tgt.mean(0)) ** 2, axis=1)))) or 1.0
     floor = 2.0 * spacing
-    normals = pca_normals(tgt, normal_k, tree) if method == "plane" else None
+    normals = pca_normals(tgt, normal_k, tree) if method == "plane" or target_origins is not None else None
+    facing = None if target_origins is None else np.sign(np.sum(normals * (tgt - target_origins), axis=1))
 
     def correspond(p):
         moved = se2.transform_points(p, src)
@@ -85,6 +94,8 @@ def icp_2d(
             if max_correspondence_distance is None:
                 thr = max(thr, floor)
             keep &= d <= thr
+        if facing is not None:
+            keep &= np.sign(np.sum(normals[j % len(tgt)] * (moved - p[:2]), axis=1)) == facing[j % len(tgt)]
         return moved, d, j, keep
 
     for it in range(1, max_iterations + 1):

@@ -12,11 +12,12 @@ points fall within ``inlier_distance`` of the submap, the matched walls fix both
 the translation (``min_constraint``) and the match puts no more than ``max_free_conflict`` of
 either visit's returns where the other's beams passed (the contradiction DeepMapping's loss
 penalizes) and it moves the keyframe no further than drift along the pose graph between the
-two allows (``max_drift``: repeated rooms); each kept loop closure that the poses do not already
-satisfy triggers a pose-graph optimization (:mod:`deepmapping.methods.pose_graph_2d`, whose Cauchy
-kernel down-weights a wrong one that got through), so drift is removed before the next keyframe
-looks for its neighbours. Lengths follow the scans' ranges (``scale``, :func:`data_scale`). The
-result warm-starts DeepMapping.
+two allows (``max_drift``: repeated rooms); a kept closure is refined over the points both visits
+see from the same side (``refine_closures``: not the two faces of one wall); each kept loop
+closure that the poses do not already satisfy triggers a pose-graph optimization
+(:mod:`deepmapping.methods.pose_graph_2d`, whose Cauchy kernel down-weights a wrong one that got
+through), so drift is removed before the next keyframe looks for its neighbours. Lengths follow
+the scans' ranges (``scale``, :func:`data_scale`). The result warm-starts DeepMapping.
 """
 
 from __future__ import annotations
@@ -49,11 +50,15 @@ def data_scale(points, valid) -> float:
     return float(np.median(ranges)) / REFERENCE_RANGE if len(ranges) else 1.0
 
 
-def keyframe_submap(points, valid, poses, center, half_width):
-    """Keyframes center-half_width..center+half_width merged into keyframe ``center``'s frame."""
+def keyframe_submap(points, valid, poses, center, half_width, origins=False):
+    """Keyframes center-half_width..center+half_width merged into keyframe ``center``'s frame (and,
+    with ``origins``, the position in that frame of the sensor that saw each point)."""
     lo, hi = max(center - half_width, 0), min(center + half_width + 1, len(points))
-    parts = [se2.transform_points(se2.relative(poses[center], poses[m]), points[m][valid[m]]) for m in range(lo, hi)]
-    return np.concatenate(parts)
+    rel = {m: se2.relative(poses[center], poses[m]) for m in range(lo, hi)}
+    merged = np.concatenate([se2.transform_points(rel[m], points[m][valid[m]]) for m in rel])
+    if not origins:
+        return merged
+    return merged, np.concatenate([np.repeat(rel[m][None, :2], np.count_nonzero(valid[m]), axis=0) for m in rel])
 
 
 def _overlap(src, tgt_tree, pose, distance):
@@ -65,8 +70,8 @@ def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float =
                 min_overlap: float = 0.7, inlier_distance: float = 0.1, submap_half_width: int = 2,
                 sequential_submap: int = 5, sequential_method: str = "plane",
                 odometry_sigma: tuple[float, float] | None = (0.1, 5.0), min_constraint: float = 0.2,
-                max_free_conflict: float = 0.05, max_drift: float = 0.2, scale: float = 1.0,
-                edge_sigma: float = 0.05,
+                max_free_conflict: float = 0.05, max_drift: float = 0.2, refine_closures: bool = True,
+                scale: float = 1.0, edge_sigma: float = 0.05,
                 progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, list[Edge]]:
     """Poses (K, 3) after loop closing, and the pose-graph edges (sequential and loop closures).
 
@@ -81,10 +86,13 @@ def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float =
     of the shortest path between the two keyframes through the pose graph (at least 3 x
     ``inlier_distance``, at most ``radius``): a place that looks like another (a repeated room)
     matches as well as the true one, but further from where the graph puts the keyframe than
-    drift along that path can explain. ``scale`` multiplies every length (``radius``,
-    ``inlier_distance``, the odometry's metres, ``edge_sigma``, the pose graph's translation
-    standard deviation, and the point-to-line sigma against the odometry prior), for scans whose
-    ranges are not those of the indoor logs the defaults were tuned on (``data_scale``).
+    drift along that path can explain. ``refine_closures``: each kept closure is refined by
+    point-to-line ICP within ``inlier_distance`` over the pairs whose sensors see the surface from
+    the same side (a wall seen from both rooms pulls a match by its thickness towards its other
+    face). ``scale`` multiplies every length (``radius``, ``inlier_distance``, the odometry's
+    metres, ``edge_sigma``, the pose graph's translation standard deviation, and the point-to-line
+    sigma against the odometry prior), for scans whose ranges are not those of the indoor logs the
+    defaults were tuned on (``data_scale``).
     """
     radius, inlier_distance, edge_sigma = radius * scale, inlier_distance * scale, edge_sigma * scale
     if odometry_sigma is not None:
@@ -105,7 +113,7 @@ def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float =
         path = _graph_distances(edges, n, candidates, radius / max_drift)
         closing = [_match(pts, valid, poses, j, n, submap_half_width,
                           min(radius, max(3 * inlier_distance, max_drift * path[j])), min_overlap, inlier_distance,
-                          min_constraint, max_free_conflict, edge_sigma, radius)
+                          min_constraint, max_free_conflict, edge_sigma, radius, refine_closures)
                    for j in candidates]
         closing = [e for e in closing if e is not None]
         edges += closing
@@ -182,8 +190,8 @@ def _candidates(poses, n, min_gap, radius, max_candidates):
 
 
 def _match(pts, valid, poses, j, n, half_width, max_shift, min_overlap, inlier_distance, min_constraint,
-           max_free_conflict, edge_sigma, radius):
-    target = keyframe_submap(pts, valid, poses, j, half_width)
+           max_free_conflict, edge_sigma, radius, refine=False):
+    target, origins = keyframe_submap(pts, valid, poses, j, half_width, origins=True)
     src = pts[n][valid[n]]
     guess = se2.relative(poses[j], poses[n])
     coarse, _ = icp_2d(src, target, init=guess, method="point", max_correspondence_distance=radius / 2, trim=None)
@@ -199,6 +207,9 @@ def _match(pts, valid, poses, j, n, half_width, max_shift, min_overlap, inlier_d
     if max_free_conflict < 1 and _closure_conflict(pts, valid, poses, j, n, rel, half_width,
                                                    2 * inlier_distance) > max_free_conflict:
         return None
+    if refine:  # the two faces of a wall are not each other: pairs seen from the same side only
+        rel, _ = icp_2d(src, target, init=rel, method="plane", max_correspondence_distance=inlier_distance, trim=None,
+                        target_origins=origins)
     return Edge(j, n, rel, sigma_t=edge_sigma)
 
 
