@@ -289,6 +289,21 @@ def test_graph_distance_takes_loop_closures_as_short_cuts():
     assert _graph_distances(edges, 4, [0, 1], 1.5) == pytest.approx({0: 1.1, 1: 1.5})  # capped at the limit
 
 
+def test_a_closure_the_poses_overrule_is_no_short_cut():
+    """The drift allowance's paths take the closures the poses satisfy; one the pose graph's kernel
+    overruled (3 is 2 m from 0, the closure says 0.1 m) does not shorten them."""
+    from deepmapping.methods.loop_closure import _graph_distances, _held
+
+    poses = np.column_stack([np.arange(5.0), np.zeros(5), np.zeros(5)])
+    edges = [Edge(i, i + 1, np.array([1.0, 0.0, 0.0])) for i in range(4)]
+    held = Edge(1, 4, np.array([3.0, 0.05, 0.0]))  # right within 0.05
+    wrong = Edge(0, 3, np.array([0.0, 0.1, 0.0]))
+    kept = _held(edges + [held, wrong], poses, 0.1)
+    assert held in kept and wrong not in kept and all(e in kept for e in edges)
+    assert _graph_distances(kept, 4, [0], 10.0) == pytest.approx({0: 4.0})
+    assert _held([], poses, 0.1) == []
+
+
 def test_a_kept_closure_is_refined_over_the_same_facing_pairs(ring, monkeypatch):
     """``refine``: the closure found by point-to-point ICP is refined by point-to-line ICP with the
     submap's sensor positions (the faces test below); off, it is returned as matched."""

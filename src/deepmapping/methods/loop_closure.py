@@ -110,7 +110,7 @@ def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float =
         edges.append(Edge(n - 1, n, rel, sigma_t=edge_sigma))
         poses = np.vstack([poses, se2.compose(poses[-1], rel)])
         candidates = _candidates(poses, n, min_gap, radius, max_candidates)
-        path = _graph_distances(edges, n, candidates, radius / max_drift)
+        path = _graph_distances(_held(edges, poses, 3 * inlier_distance), n, candidates, radius / max_drift)
         closing = [_match(pts, valid, poses, j, n, submap_half_width,
                           min(radius, max(3 * inlier_distance, max_drift * path[j])), min_overlap, inlier_distance,
                           min_constraint, max_free_conflict, edge_sigma, radius, refine_closures)
@@ -136,6 +136,18 @@ def _graph_distances(edges, n, targets, limit) -> dict:
     graph = coo_matrix((w, (ij[:, 0], ij[:, 1])), shape=(n + 1, n + 1)).tocsr()
     dist = dijkstra(graph, directed=False, indices=n, limit=limit)
     return {j: float(min(dist[j], limit)) for j in targets}
+
+
+def _held(edges, poses, distance) -> list:
+    """The sequential edges and the loop closures the poses satisfy within ``distance`` (translation):
+    a wrong closure the pose graph's kernel overrules is no short cut for drift."""
+    if not edges:
+        return edges
+    ij = np.array([(e.i, e.j) for e in edges])
+    z = np.array([e.z[:2] for e in edges])
+    r = se2.relative(poses[ij[:, 0]], poses[ij[:, 1]])[:, :2] - z
+    keep = (ij[:, 1] - ij[:, 0] == 1) | (np.hypot(r[:, 0], r[:, 1]) <= distance)
+    return [e for e, k in zip(edges, keep) if k]
 
 
 def _disagrees(poses, edge, distance) -> bool:
