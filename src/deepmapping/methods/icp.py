@@ -95,7 +95,7 @@ def icp_2d(
                 thr = max(thr, floor)
             keep &= d <= thr
         if facing is not None:
-            keep &= np.sign(np.sum(normals[j % len(tgt)] * (moved - p[:2]), axis=1)) == facing[j % len(tgt)]
+            keep &= np.sign(np.sum(normals[j] * (moved - p[:2]), axis=1)) == facing[j]
         return moved, d, j, keep
 
     for it in range(1, max_iterations + 1):
