@@ -110,7 +110,9 @@ def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float =
         edges.append(Edge(n - 1, n, rel, sigma_t=edge_sigma))
         poses = np.vstack([poses, se2.compose(poses[-1], rel)])
         candidates = _candidates(poses, n, min_gap, radius, max_candidates)
-        path = _graph_distances(_held(edges, poses, 3 * inlier_distance), n, candidates, radius / max_drift)
+        # most keyframes have no candidate: no need to list the held edges for them
+        path = _graph_distances(_held(edges, poses, 3 * inlier_distance), n, candidates, radius / max_drift) \
+            if candidates else {}
         closing = [_match(pts, valid, poses, j, n, submap_half_width,
                           min(radius, max(3 * inlier_distance, max_drift * path[j])), min_overlap, inlier_distance,
                           min_constraint, max_free_conflict, edge_sigma, radius, refine_closures)
