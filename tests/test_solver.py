@@ -133,6 +133,21 @@ def test_nearest_index_kdtree_matches_the_distance_matrix(monkeypatch):
     assert torch.isnan(loss.nearest_distance(q, torch.ones(3, 300, dtype=torch.bool), t, tv)[0])
 
 
+def test_pairs_sharing_a_target_share_its_tree_and_find_the_same_neighbours(monkeypatch):
+    # every pair of a batch: the pairs with the same target cloud use one k-d tree, same answer
+    gen = torch.Generator().manual_seed(1)
+    clouds, valid = torch.rand(3, 1000, 3, generator=gen), torch.rand(3, 1000, generator=gen) > 0.2
+    a, b = torch.tensor([0, 0, 1, 2]), torch.tensor([1, 2, 2, 1])
+    q = torch.rand(4, 300, 3, generator=gen)
+    built = []
+    real_tree = loss.cKDTree
+    monkeypatch.setattr(loss, "cKDTree", lambda pts: built.append(len(pts)) or real_tree(pts))
+    shared = loss.nearest_index(q, clouds[b], valid[b], target=b)
+    assert len(built) == 2  # clouds 1 and 2, once each
+    assert torch.equal(shared, loss.nearest_index(q, clouds[b], valid[b])) and len(built) == 6
+    assert torch.equal(loss.chamfer(clouds[a], valid[a], clouds[b], valid[b], x_id=a, y_id=b),
+                       loss.chamfer(clouds[a], valid[a], clouds[b], valid[b]))
+
 def test_batches_partition_scans_and_cover_every_neighbour_pair():
     k, pairs = 100, set()
     for epoch in range(30):

@@ -33,14 +33,16 @@ def occupancy_bce(occ_logits: torch.Tensor, occ_mask: torch.Tensor,
 
 
 def nearest_distance(q: torch.Tensor, qv: torch.Tensor, t: torch.Tensor, tv: torch.Tensor,
-                     tn: torch.Tensor | None = None, truncate: float | None = None) -> torch.Tensor:
+                     tn: torch.Tensor | None = None, truncate: float | None = None,
+                     target: torch.Tensor | None = None) -> torch.Tensor:
     """Mean over valid queries q (P, n, D) of the distance to the nearest valid t (P, m, D) -> (P,);
     with t's unit normals tn (P, m, D): the distance along the nearest point's normal (point to plane).
+    ``target`` (P,): which cloud each t is (as nearest_index).
 
     The neighbour is searched without gradient and the distance to it re-evaluated with
     gradient (same value and gradient as the minimum, 5x faster).
     """
-    nn_idx = nearest_index(q, t, tv)
+    nn_idx = nearest_index(q, t, tv, target)
     gather = nn_idx[..., None].expand(-1, -1, t.shape[2])
     diff = q - t.gather(1, gather)
     point = (diff.pow(2).sum(-1) + 1e-12).sqrt()
@@ -50,23 +52,29 @@ def nearest_distance(q: torch.Tensor, qv: torch.Tensor, t: torch.Tensor, tv: tor
     return (dist * qv).sum(1) / qv.sum(1).clamp(min=1)
 
 
-def nearest_index(q: torch.Tensor, t: torch.Tensor, tv: torch.Tensor) -> torch.Tensor:
+def nearest_index(q: torch.Tensor, t: torch.Tensor, tv: torch.Tensor, target: torch.Tensor | None = None) -> torch.Tensor:
     """Index (P, n) of the nearest valid point of t (P, m, D) to each query of q (P, n, D), no gradient.
 
     On the CPU and from ``KDTREE_MIN_PAIRS`` distances a pair on, a k-d tree of each target's valid
     points; else the full distance matrix. Both give the exact nearest neighbour (up to rounding
-    on near ties).
+    on near ties). ``target`` (P,): which cloud each t is; pairs with the same target share its
+    tree (a batch's every pair: one tree a scan, not one a pair; the same neighbours).
     """
     with torch.no_grad():
         if q.device.type != "cpu" or q.shape[1] * t.shape[1] < KDTREE_MIN_PAIRS:
             return torch.cdist(q, t).masked_fill(~tv[:, None, :], float("inf")).argmin(dim=2)
         qn, tn, tvn = q.detach().numpy(), t.detach().numpy(), tv.numpy()
         index = np.zeros(q.shape[:2], dtype=np.int64)
-        for p in range(q.shape[0]):  # non-finite points (a diverged step) get any index: their distance stays NaN
-            keep = np.flatnonzero(tvn[p] & np.isfinite(tn[p]).all(1))
+        names = range(q.shape[0]) if target is None else target.tolist()
+        trees: dict = {}
+        for p, name in enumerate(names):  # non-finite points (a diverged step) get any index: their distance stays NaN
+            if name not in trees:
+                keep = np.flatnonzero(tvn[p] & np.isfinite(tn[p]).all(1))
+                trees[name] = (keep, cKDTree(tn[p, keep]) if keep.size else None)
+            keep, tree = trees[name]
             if keep.size:  # no valid target: any index (the pair's term is dropped by chamfer's ``has``)
                 queries = np.where(np.isfinite(qn[p]), qn[p], 0.0)
-                index[p] = keep[cKDTree(tn[p, keep]).query(queries, k=1)[1]]
+                index[p] = keep[tree.query(queries, k=1)[1]]
         return torch.from_numpy(index)
 
 
@@ -74,18 +82,21 @@ def chamfer(x: torch.Tensor, xv: torch.Tensor, y: torch.Tensor, yv: torch.Tensor
             xq: torch.Tensor | None = None, xqv: torch.Tensor | None = None,
             yq: torch.Tensor | None = None, yqv: torch.Tensor | None = None,
             xn: torch.Tensor | None = None, yn: torch.Tensor | None = None,
-            truncate: float | None = None) -> torch.Tensor:
+            truncate: float | None = None, x_id: torch.Tensor | None = None,
+            y_id: torch.Tensor | None = None) -> torch.Tensor:
     """Eq. 5 for P pairs at once: x (P, N, D), y (P, M, D) with validity masks -> (P,).
 
     Two-way mean Euclidean distance to the nearest point of the other cloud; invalid points
     neither count nor serve as neighbours. Optional query subsets xq of x and yq of y (the
     beams sampled this step) estimate each mean from fewer points, against the full clouds.
     With both clouds' unit normals xn, yn: each distance along the nearest point's normal.
+    x_id, y_id (P,): which cloud each x and y is (pairs sharing a cloud share its k-d tree).
     """
     xq, xqv = (x, xv) if xq is None else (xq, xqv)
     yq, yqv = (y, yv) if yq is None else (yq, yqv)
     has = (xv.any(1) & yv.any(1)).to(x.dtype)
-    return (nearest_distance(xq, xqv, y, yv, yn, truncate) + nearest_distance(yq, yqv, x, xv, xn, truncate)) * has
+    return (nearest_distance(xq, xqv, y, yv, yn, truncate, y_id)
+            + nearest_distance(yq, yqv, x, xv, xn, truncate, x_id)) * has
 
 
 def temporal_pairs(indices: torch.Tensor, window: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -131,7 +142,7 @@ def chamfer_loss(glob: torch.Tensor, valid: torch.Tensor, indices: torch.Tensor,
         return glob.new_zeros(())
     q = (None,) * 4 if queries is None else (queries[a], queries_valid[a], queries[b], queries_valid[b])
     n = (None, None) if normals is None else (normals[a], normals[b])
-    return chamfer(glob[a], valid[a], glob[b], valid[b], *q, *n, truncate=truncate).mean()
+    return chamfer(glob[a], valid[a], glob[b], valid[b], *q, *n, truncate=truncate, x_id=a, y_id=b).mean()
 
 
 def scan_normals(scans: np.ndarray, valid: np.ndarray, k: int = 16) -> np.ndarray:
