@@ -268,6 +268,19 @@ def test_auto_warm_start_is_icp_for_handheld_depth(tmp_path):
     assert auto_warm_start(s) == "icp-planar"  # AVD-like: planar poses
 
 
+def test_handheld_depth_gets_the_handheld_profile(tmp_path):
+    from deepmapping.cli.register_cmd import build_config
+
+    s = load_scans(seven_scenes(tmp_path), depth=DepthOptions(pixel_stride=1))
+    assert s.handheld
+    cfg = build_config("default", None, "deepmapping", None, None, None, None, None, {}, s.is_3d, handheld=s.handheld)
+    assert cfg.profile == "handheld" and cfg.loss.chamfer_metric == "plane" and cfg.optim.batch_size == 16
+    cold = build_config("default", None, "deepmapping", None, "none", None, None, None, {}, True, handheld=True)
+    assert cold.profile == "default-3d"
+    s.pose_dof = 3  # AVD-like: planar poses
+    assert not s.handheld
+
+
 def test_success_threshold_follows_the_data(tmp_path):
     """450 mm only for the AVD protocol (depth images, planar poses); 2 % of the typical range else."""
     from deepmapping.api import evaluate_poses

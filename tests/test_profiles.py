@@ -41,6 +41,10 @@ def test_resolve_profile_picks_the_variant_for_the_data():
     assert resolve_profile("default", is_3d=True, cold=True) == "default-3d"  # 3D cold starts keep default-3d
     assert resolve_profile("paper", is_3d=False, cold=True) == "paper"  # a named profile stays as asked
     assert resolve_profile("bunny", is_3d=True) == "bunny"
+    assert resolve_profile("default", is_3d=True, handheld=True) == "handheld"  # 6-DoF depth images
+    assert resolve_profile("default", is_3d=True, cold=True, handheld=True) == "default-3d"  # measured warm only
+    assert resolve_profile("paper", is_3d=True, handheld=True) == "paper-3d"
+    assert resolve_profile("bunny", is_3d=True, handheld=True) == "bunny"
     with pytest.raises(ConfigError, match="'fast' is for 2D scans"):
         resolve_profile("fast", is_3d=True)
     with pytest.raises(ConfigError, match="unknown profile 'nope'"):

@@ -60,12 +60,13 @@ def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | 
     """Register the scans with ``config.method`` (deepmapping, direct, icp-point, icp-plane,
     icp-planar, multiway, loop-closure, kiss-icp).
 
-    With no config: the "default" profile for 2D scans, "default-3d" for 3D ones. A cold start
+    With no config: the "default" profile for 2D scans, "default-3d" for 3D ones ("handheld" for
+    6-DoF depth images). A cold start
     (``warm_start.method = "none"``) of an ordered 2D or planar-3D sequence places the scans by the
     curriculum first (``config.curriculum``; ``on_place(placed, total)`` reports its progress).
     """
     scans.validate()
-    cfg = config or load_config(resolve_profile("default", scans.is_3d))
+    cfg = config or load_config(resolve_profile("default", scans.is_3d, handheld=scans.handheld))
     check_settings(scans, cfg)
     t0 = time.perf_counter()
     if cfg.method in BASELINES:  # initial guesses from a pose file, or from a 2D log's own odometry

@@ -404,9 +404,10 @@ def _read_profiles() -> dict[str, dict]:
 PROFILES: dict[str, dict] = _read_profiles()
 
 
-def resolve_profile(profile: str, is_3d: bool, cold: bool = False) -> str:
+def resolve_profile(profile: str, is_3d: bool, cold: bool = False, handheld: bool = False) -> str:
     """The profile a run uses: 3D scans get the 3D variant (default -> default-3d, paper ->
-    paper-3d), a cold start of the default profile gets ``cold``."""
+    paper-3d), a cold start of the default profile gets ``cold`` (2D), the default profile on
+    ``handheld`` 6-DoF depth images (data.ScanSet.handheld) from a warm start gets ``handheld``."""
     if profile not in PROFILES:
         raise ConfigError(f"unknown profile '{profile}' (choose from {', '.join(PROFILES)})")
     if is_3d and PROFILES[profile].get("scans") == "2d":
@@ -415,6 +416,8 @@ def resolve_profile(profile: str, is_3d: bool, cold: bool = False) -> str:
         profile = f"{profile}-3d"
     if profile == "default" and cold:
         profile = "cold"
+    if profile == "default-3d" and handheld and not cold:  # measured from a warm start only
+        profile = "handheld"
     return profile
 
 

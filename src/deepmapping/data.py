@@ -87,6 +87,12 @@ class ScanSet:
     def is_3d(self) -> bool:
         return self.dim == 3
 
+    @property
+    def handheld(self) -> bool:
+        """Depth images with 6-DoF poses: a camera carried through a room (7-Scenes, TUM RGB-D); the
+        default profile is then ``handheld``."""
+        return self.is_3d and self.grid_shape is not None and self.pose_dof == 6
+
     def pose_shape(self) -> tuple[int, ...]:
         return (4, 4) if self.is_3d else (3,)
 

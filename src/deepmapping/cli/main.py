@@ -147,8 +147,8 @@ def register(
         cfg = register_cmd.resume_config(out)
     else:
         sets = parse_sets(set)
-        cfg = lambda is_3d: register_cmd.build_config(profile, config, method, epochs, warm_start, init,  # noqa: E731
-                                                      device, seed, sets, is_3d, workers)
+        cfg = lambda is_3d, handheld=False: register_cmd.build_config(  # noqa: E731
+            profile, config, method, epochs, warm_start, init, device, seed, sets, is_3d, workers, handheld)
         cfg(False)  # a bad setting fails before any data is read
     out = out or default_run_dir(method)
     scans, result = register_cmd.run_register(data, out, cfg, format, gt, resume, plots=not no_plots,

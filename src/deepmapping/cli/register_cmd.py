@@ -18,9 +18,11 @@ from deepmapping.io.lock import folder_lock
 from deepmapping.output.run_dir import write_config, write_json, write_run
 
 
-def build_config(profile, config_file, method, epochs, warm_start, init, device, seed, sets, is_3d=False, workers=None):
-    """The effective config; 3D data gets the 3D variant of the profile (default -> default-3d)."""
-    profile = resolve_profile(profile, is_3d, cold=warm_start == "none" and init is None)
+def build_config(profile, config_file, method, epochs, warm_start, init, device, seed, sets, is_3d=False, workers=None,
+                 handheld=False):
+    """The effective config; 3D data gets the 3D variant of the profile (default -> default-3d, or
+    handheld for 6-DoF depth images)."""
+    profile = resolve_profile(profile, is_3d, cold=warm_start == "none" and init is None, handheld=handheld)
 
     overrides = dict(sets)
     overrides["method"] = method
@@ -54,7 +56,7 @@ def resume_config(out: Path):
 
 def run_register(data: Path, out: Path, cfg, fmt, gt, resume: bool, plots: bool = True, quiet: bool = False,
                  keyframes: str | None = None, non_keyframes: str | None = None, depth=None):
-    """cfg: a Config, or a function is_3d -> Config (the profile depends on the data); depth: the
+    """cfg: a Config, or a function (is_3d, handheld) -> Config (the profile depends on the data); depth: the
     depth-image options (io.depth.DepthOptions), kept in run.json for `deepmapping evaluate`."""
     import time
 
@@ -67,7 +69,7 @@ def run_register(data: Path, out: Path, cfg, fmt, gt, resume: bool, plots: bool 
                        non_keyframes=non_keyframes, depth=depth)
     for note in scans.notes if not launched_worker() else ():  # torchrun: worker 0 speaks for all
         console.print(f"note: {note}", highlight=False, soft_wrap=True)
-    cfg = cfg(scans.is_3d) if callable(cfg) else cfg
+    cfg = cfg(scans.is_3d, scans.handheld) if callable(cfg) else cfg
     if int(os.environ.get("WORLD_SIZE", "1")) > 1:  # torchrun: the run says how many trained it
         cfg = cfg.model_copy(update={"workers": int(os.environ["WORLD_SIZE"])})
     load_s = time.perf_counter() - t_load
