@@ -277,6 +277,11 @@ def test_handheld_depth_gets_the_handheld_profile(tmp_path):
     assert cfg.profile == "handheld" and cfg.loss.chamfer_metric == "plane" and cfg.optim.batch_size == 16
     cold = build_config("default", None, "deepmapping", None, "none", None, None, None, {}, True, handheld=True)
     assert cold.profile == "default-3d"
+    from deepmapping.cli.register_cmd import settings_line  # what the command prints before it starts
+
+    assert settings_line(s, cfg) == "settings: profile handheld, warm start icp-plane (auto), 200 epochs"
+    assert settings_line(s, cold) == "settings: profile default-3d, warm start none, 200 epochs"
+    assert settings_line(s, cfg.with_overrides({"method": "multiway"})) == "settings: profile handheld, method multiway"
     s.pose_dof = 3  # AVD-like: planar poses
     assert not s.handheld
 

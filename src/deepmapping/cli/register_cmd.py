@@ -83,6 +83,8 @@ def run_register(data: Path, out: Path, cfg, fmt, gt, resume: bool, plots: bool 
         info["depth"] = depth.to_dict()
     if launched_worker():  # torchrun: worker 0 writes the run; the others train with it
         return scans, register(scans, cfg, checkpoint=out / "checkpoint.pt", resume=resume)
+    if not quiet:
+        console.print(settings_line(scans, cfg), highlight=False, soft_wrap=True)
     with folder_lock(make_folder(out)):  # a second command on this folder refuses (FolderBusy)
         write_config(out, cfg)
         write_json(out / "run.json", {"method": cfg.method, "status": "running", **info})
@@ -100,6 +102,18 @@ def run_register(data: Path, out: Path, cfg, fmt, gt, resume: bool, plots: bool 
                           "peak_rss_mb": peak_rss_mb()}
         write_json(out / "run.json", json.loads((out / "run.json").read_text()) | {"timings": result.timings})
     return scans, result
+
+
+def settings_line(scans, cfg) -> str:
+    """What the run uses where the data chose it: 'settings: profile handheld, warm start icp-plane
+    (auto), 200 epochs' (the whole config goes to config.yaml)."""
+    from deepmapping.api import auto_warm_start
+
+    line = f"settings: profile {cfg.profile}"
+    if cfg.method not in ("deepmapping", "direct"):
+        return f"{line}, method {cfg.method}"
+    ws = cfg.warm_start.method
+    return f"{line}, warm start {auto_warm_start(scans) + ' (auto)' if ws == 'auto' else ws}, {cfg.optim.epochs} epochs"
 
 
 def interrupted(data: Path, out: Path) -> None:
