@@ -269,7 +269,7 @@ def test_auto_warm_start_is_icp_for_handheld_depth(tmp_path):
 
 
 def test_handheld_depth_gets_the_handheld_profile(tmp_path):
-    from deepmapping.cli.register_cmd import build_config
+    from deepmapping.cli.register_cmd import build_config, settings_line
 
     s = load_scans(seven_scenes(tmp_path), depth=DepthOptions(pixel_stride=1))
     assert s.handheld
@@ -277,8 +277,7 @@ def test_handheld_depth_gets_the_handheld_profile(tmp_path):
     assert cfg.profile == "handheld" and cfg.loss.chamfer_metric == "plane" and cfg.optim.batch_size == 16
     cold = build_config("default", None, "deepmapping", None, "none", None, None, None, {}, True, handheld=True)
     assert cold.profile == "default-3d"
-    from deepmapping.cli.register_cmd import settings_line  # what the command prints before it starts
-
+    # what the command prints before it starts
     assert settings_line(s, cfg) == "settings: profile handheld, warm start icp-plane (auto), 200 epochs"
     assert settings_line(s, cold) == "settings: profile default-3d, warm start none, 200 epochs"
     assert settings_line(s, cfg.with_overrides({"method": "multiway"})) == "settings: profile handheld, method multiway"

@@ -2,8 +2,8 @@
 refines a warm start on a rendered room seen through the 7-Scenes layout.
 
 Margins measured (2026-12-06, 60 epochs, 1 cm / 0.5 deg of noise on each pose but the first):
-seeds 0-7 end at 0.10-0.37 x their start's ATE with one thread, 0.20-0.38 x with two; the
-default-3d profile, 0.77-0.81 x."""
+seeds 0-7 end at 0.10-0.37 x their start's ATE with one thread, seeds 0-2 at 0.20-0.38 x with two;
+the default-3d profile (seeds 0, 1) at 0.77-0.81 x, so the bound tells the profiles apart."""
 
 from __future__ import annotations
 
