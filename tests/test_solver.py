@@ -145,8 +145,10 @@ def test_pairs_sharing_a_target_share_its_tree_and_find_the_same_neighbours(monk
     shared = loss.nearest_index(q, clouds[b], valid[b], target=b)
     assert len(built) == 2  # clouds 1 and 2, once each
     assert torch.equal(shared, loss.nearest_index(q, clouds[b], valid[b])) and len(built) == 6
-    assert torch.equal(loss.chamfer(clouds[a], valid[a], clouds[b], valid[b], x_id=a, y_id=b),
-                       loss.chamfer(clouds[a], valid[a], clouds[b], valid[b]))
+    built.clear()
+    shared = loss.chamfer(clouds[a], valid[a], clouds[b], valid[b], x_id=a, y_id=b)
+    assert len(built) == 3  # both directions: clouds 0, 1, 2 once each
+    assert torch.equal(shared, loss.chamfer(clouds[a], valid[a], clouds[b], valid[b]))
 
 def test_batches_partition_scans_and_cover_every_neighbour_pair():
     k, pairs = 100, set()
