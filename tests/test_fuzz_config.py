@@ -57,7 +57,8 @@ def assert_sane(cfg: Config) -> None:
 
     walk(cfg.model_dump(), "")
     o, lo, ic, ln, mn, cu = cfg.optim, cfg.loss, cfg.icp, cfg.lnet, cfg.mnet, cfg.curriculum
-    assert o.lr > 0 and o.epochs >= 0 and o.batch_size >= 1 and o.eval_every >= 1 and o.mnet_warmup_epochs >= 0
+    assert o.lr > 0 and o.epochs >= 0 and o.batch_size >= 1 and o.eval_every >= 1
+    assert o.mnet_warmup_epochs == "auto" or o.mnet_warmup_epochs >= 0
     assert o.lr_final_factor >= 0 and o.checkpoint_every_s >= 0
     assert (o.max_time_s is None or o.max_time_s >= 0) and (o.early_stop_tol is None or o.early_stop_tol >= 0)
     assert lo.free_samples >= 0 and lo.near_hit_samples >= 0 and lo.near_hit_distance >= 0

@@ -96,6 +96,17 @@ def test_auto_warm_start_and_errors():
     assert auto_warm_start(scans_2d(LONG_SEQUENCE, True)) == "loop-closure"  # a long trajectory: its loops
     assert auto_warm_start(scans_2d(LONG_SEQUENCE - 1, True)) == "icp-plane"
     assert auto_warm_start(scans_2d(LONG_SEQUENCE, False)) == "icp-plane"  # no sequence, no loop
+    assert LONG_SEQUENCE <= 128  # the paper's 128- and 256-scan trajectories start from their loop closures
+    # the M-Net warm-up "auto": only from a loop-closure start; a value given stays
+    from deepmapping.api import LOOP_WARMUP_EPOCHS, resolve_mnet_warmup
+
+    cfg2 = load_config("default")
+    assert cfg2.optim.mnet_warmup_epochs == "auto"
+    assert resolve_mnet_warmup(scans_2d(LONG_SEQUENCE, True), cfg2) == LOOP_WARMUP_EPOCHS > 0
+    assert resolve_mnet_warmup(scans_2d(LONG_SEQUENCE - 1, True), cfg2) == 0  # icp-plane
+    assert resolve_mnet_warmup(scans_2d(8, True), cfg2.with_overrides({"warm_start.method": "loop-closure"})) > 0
+    assert resolve_mnet_warmup(scans_2d(LONG_SEQUENCE, True), cfg2.with_overrides({"optim.mnet_warmup_epochs": 3})) == 3
+    assert resolve_mnet_warmup(log, cfg2) == LOOP_WARMUP_EPOCHS  # keyframed logs start from loop closure
     cfg = load_config("default-3d")
     with pytest.raises(ConfigError, match="3-DoF"):
         baseline_poses(_scans(3, True, 6), cfg, "icp-planar")

@@ -77,6 +77,7 @@ def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | 
         result = _finish(scans, cfg, poses, t0, init=init)
         result.method_info = info
         return result
+    cfg = cfg.model_copy(update={"optim": cfg.optim.model_copy(update={"mnet_warmup_epochs": resolve_mnet_warmup(scans, cfg)})})
     saved = _load_checkpoint(checkpoint, cfg) if resume else None
     if saved is not None:
         init = np.asarray(saved["init_poses_input"])
@@ -134,9 +135,14 @@ def warm_start_poses(scans: ScanSet, cfg: Config, progress=None) -> np.ndarray:
     return baseline_poses(scans, cfg, ws.method, _log_odometry(scans), progress)
 
 
-# warm_start "auto" for ordered 2D scans: loop closures from this many scans on (simulated 1024 and
-# 4096 scans: ICP drifts 9-55 px, beyond DeepMapping's reach; the 2D suite's 256 keep icp-plane)
-LONG_SEQUENCE = 512
+# warm_start "auto" for ordered 2D scans: loop closures from this many scans on (the paper's 128- and
+# 256-scan trajectories: loop closure alone 0.07-0.36 px where point-to-plane ICP is 0.56-3.1 px, and
+# DeepMapping from it ends lower than from ICP; simulated 1024 and 4096 scans: ICP drifts 9-55 px)
+LONG_SEQUENCE = 128
+# optim.mnet_warmup_epochs "auto": epochs of M-Net-only training from a loop-closure start (released at
+# once, its poses follow an M-Net with no map yet: 256 scans 0.20 px -> 3.9 px at epoch 10, 0.70 px at the
+# end; with the warm-up 0.36 px). From a point-to-plane ICP start (3.3 px) it hurt (0.76 -> 2.0 px): none.
+LOOP_WARMUP_EPOCHS = 25
 
 
 def auto_warm_start(scans: ScanSet) -> str:
@@ -154,6 +160,16 @@ def auto_warm_start(scans: ScanSet) -> str:
     if scans.recorded_poses and scans.init_poses is not None and scans.ordered:
         return "file"
     return "icp-planar" if scans.grid_shape is not None and scans.pose_dof == 3 else "icp-plane"
+
+
+def resolve_mnet_warmup(scans: ScanSet, cfg: Config) -> int:
+    """optim.mnet_warmup_epochs for this run: as given, or "auto" = LOOP_WARMUP_EPOCHS when the warm
+    start (as warm_start "auto" resolves it) is loop closure, else 0."""
+    epochs = cfg.optim.mnet_warmup_epochs
+    if epochs != "auto":
+        return epochs
+    ws = cfg.warm_start.method if cfg.warm_start.method != "auto" else auto_warm_start(scans)
+    return LOOP_WARMUP_EPOCHS if ws == "loop-closure" else 0
 
 
 # loss.odometry_sigma "auto" with the scans' own recorded poses as the warm start: [sigma_t (scan units:

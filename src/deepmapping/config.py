@@ -32,6 +32,7 @@ class _Section(BaseModel):
 PosInt = Annotated[int, Field(ge=1)]
 PosFloat = Annotated[float, Field(gt=0)]
 NonNegFloat = Annotated[float, Field(ge=0)]
+NonNegInt = Annotated[int, Field(ge=0)]
 
 
 class LNetConfig(_Section):
@@ -137,7 +138,9 @@ class OptimConfig(_Section):
     batch_order: Literal["contiguous", "random", "place"] = "contiguous"
     epochs: int = Field(3000, ge=0)
     max_time_s: NonNegFloat | None = None  # stop after this much wall time (None = no limit)
-    mnet_warmup_epochs: int = Field(0, ge=0)  # first epochs train the M-Net only (poses held at the warm start)
+    # first epochs train the M-Net only (poses held at the warm start); "auto": api.LOOP_WARMUP_EPOCHS when the
+    # warm start is loop closure (its poses are nearer than the loss's first steps leave them), else none
+    mnet_warmup_epochs: NonNegInt | Literal["auto"] = 0
     # ... and at least this many first optimizer steps: a run over few scans has few steps an epoch
     mnet_warmup_steps: int = Field(0, ge=0)
     lr_final_factor: float = Field(1.0, ge=0)  # cosine decay to lr * factor (1.0 = constant lr, as the paper)
@@ -303,7 +306,7 @@ class WarmStartConfig(_Section):
     # "auto" (3D): icp-planar for AVD-like depth images with planar poses (6-DoF ICP from the
     # identity is wrong on most of their 30 deg turns), icp-plane for 6-DoF depth images
     # (handheld, 7-Scenes) and point-cloud sequences
-    # 2D: icp-plane for scans, loop-closure for keyframed logs (CARMEN) and ordered scans of 512 or more
+    # 2D: icp-plane for scans, loop-closure for keyframed logs (CARMEN) and ordered scans of 128 or more
     method: WarmStart = "auto"
     path: str | None = None  # initial poses file (method="file")
 
