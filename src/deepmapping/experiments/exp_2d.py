@@ -129,6 +129,8 @@ def _register(scans, method: str, epochs, time_budget_s, seed) -> tuple[dict, di
     overrides: dict = {"seed": seed, "eval.success_threshold": SUCCESS_PX}
     if method in ("direct", "icp-point", "icp-plane", "direct-cold"):
         overrides["method"] = method.removesuffix("-cold")
+    if method in ("deepmapping", "direct"):  # paired with the icp-plane row (the default's start from 128 scans is loop closure)
+        overrides["warm_start.method"] = "icp-plane"
     if epochs is not None and method in ("deepmapping", "deepmapping-paper", "direct", *COLD):
         overrides["optim.epochs"] = int(epochs)
     if method == "deepmapping-paper":
