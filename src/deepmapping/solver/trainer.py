@@ -151,7 +151,8 @@ class Trainer:
         o = self.cfg.optim
         if self.use_curriculum_now():  # the curriculum's placements always move with the M-Net
             return False
-        return self.state.epoch < o.mnet_warmup_epochs or self.state.step - self.state.curriculum_steps < o.mnet_warmup_steps
+        epochs = 0 if o.mnet_warmup_epochs == "auto" else o.mnet_warmup_epochs  # api.register resolves "auto" first
+        return self.state.epoch < epochs or self.state.step - self.state.curriculum_steps < o.mnet_warmup_steps
 
     def loss(self, idx: torch.Tensor, own: int | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(eq. 4, eq. 7, the odometry factor) on the scans ``idx``; ``own``: only the first ``own`` of
