@@ -284,6 +284,31 @@ def test_ctrl_c_then_resume_continues_exactly_where_the_run_stopped(small_scans,
         register(small_scans, _quick_cfg(seed=5), checkpoint=tmp_path / "b.pt", resume=True)
 
 
+def test_auto_mnet_warmup_holds_a_loop_closure_start_and_resumes(small_scans, tmp_path):
+    """optim.mnet_warmup_epochs "auto" from a loop-closure start: the poses stay at the start for the
+    first api.LOOP_WARMUP_EPOCHS epochs (0 given: they move at once), and a run stopped inside the
+    warm-up resumes exactly (the resolved value is what the checkpoint is compared with)."""
+    from deepmapping.api import LOOP_WARMUP_EPOCHS, register
+    from deepmapping.solver.trainer import Interrupted
+
+    over = {"warm_start.method": "loop-closure", "optim.mnet_warmup_epochs": "auto", "optim.epochs": 3}
+    assert LOOP_WARMUP_EPOCHS > 3
+    held = register(small_scans, _quick_cfg(**over))
+    np.testing.assert_allclose(held.poses, held.init_poses, atol=1e-6)
+    moved = register(small_scans, _quick_cfg(**over | {"optim.mnet_warmup_epochs": 0}))
+    assert not np.allclose(moved.poses, moved.init_poses, atol=1e-4)
+
+    def ctrl_c_after_two_epochs(epoch, total, loss_value):
+        if epoch == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(Interrupted):
+        register(small_scans, _quick_cfg(**over), checkpoint=tmp_path / "w.pt", on_epoch=ctrl_c_after_two_epochs)
+    resumed = register(small_scans, _quick_cfg(**over), checkpoint=tmp_path / "w.pt", resume=True)
+    np.testing.assert_allclose(resumed.poses, held.poses, atol=1e-6)
+    assert resumed.history["epoch"][-1] == 3
+
+
 def test_place_batches_resume_exactly_with_the_places_of_the_checkpoint(small_scans, tmp_path):
     """The places are recomputed every optim.eval_every (3) epochs: a run stopped after epoch 2
     resumes with the places it had (kept in the checkpoint), not ones from its poses then."""
