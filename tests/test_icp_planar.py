@@ -97,16 +97,30 @@ def test_auto_warm_start_and_errors():
     assert auto_warm_start(scans_2d(LONG_SEQUENCE - 1, True)) == "icp-plane"
     assert auto_warm_start(scans_2d(LONG_SEQUENCE, False)) == "icp-plane"  # no sequence, no loop
     assert LONG_SEQUENCE <= 128  # the paper's 128- and 256-scan trajectories start from their loop closures
-    # the M-Net warm-up "auto": only from a loop-closure start; a value given stays
-    from deepmapping.api import LOOP_WARMUP_EPOCHS, resolve_mnet_warmup
+    # the settings "auto" that follow the start: the loop-closure ones only from a loop-closure start (2D);
+    # a value given stays
+    from deepmapping.api import LOOP_WARMUP_EPOCHS, START_SETTINGS, start_settings
 
     cfg2 = load_config("default")
+    near = START_SETTINGS["loop-closure"]
+    other = START_SETTINGS["other"]
+    assert near == {"optim.mnet_warmup_epochs": LOOP_WARMUP_EPOCHS} and other == {"optim.mnet_warmup_epochs": 0}
     assert cfg2.optim.mnet_warmup_epochs == "auto"
-    assert resolve_mnet_warmup(scans_2d(LONG_SEQUENCE, True), cfg2) == LOOP_WARMUP_EPOCHS > 0
-    assert resolve_mnet_warmup(scans_2d(LONG_SEQUENCE - 1, True), cfg2) == 0  # icp-plane
-    assert resolve_mnet_warmup(scans_2d(8, True), cfg2.with_overrides({"warm_start.method": "loop-closure"})) > 0
-    assert resolve_mnet_warmup(scans_2d(LONG_SEQUENCE, True), cfg2.with_overrides({"optim.mnet_warmup_epochs": 3})) == 3
-    assert resolve_mnet_warmup(log, cfg2) == LOOP_WARMUP_EPOCHS  # keyframed logs start from loop closure
+    assert start_settings(scans_2d(LONG_SEQUENCE, True), cfg2) == near
+    assert start_settings(log, cfg2) == near  # keyframed logs start from loop closure
+    assert start_settings(scans_2d(LONG_SEQUENCE - 1, True), cfg2) == other  # icp-plane
+    assert start_settings(scans_2d(8, True), cfg2.with_overrides({"warm_start.method": "loop-closure"})) == near
+    assert start_settings(scans_2d(LONG_SEQUENCE, True), cfg2.with_overrides({"warm_start.method": "icp-plane"})) == other
+    given = cfg2.with_overrides({"optim.mnet_warmup_epochs": 3})
+    assert start_settings(scans_2d(LONG_SEQUENCE, True), given) == {}
+    assert start_settings(_scans(3, False, 6), cfg2) == other
+    resolved = cfg2.with_overrides(start_settings(scans_2d(LONG_SEQUENCE, True), cfg2))
+    assert resolved.optim.mnet_warmup_epochs == LOOP_WARMUP_EPOCHS
+    from deepmapping.cli.register_cmd import settings_line
+
+    assert settings_line(scans_2d(LONG_SEQUENCE, True), cfg2) == (
+        f"settings: profile default, warm start loop-closure (auto), 250 epochs, the first {LOOP_WARMUP_EPOCHS} M-Net only")
+    assert settings_line(scans_2d(8, True), cfg2) == "settings: profile default, warm start icp-plane (auto), 250 epochs"
     cfg = load_config("default-3d")
     with pytest.raises(ConfigError, match="3-DoF"):
         baseline_poses(_scans(3, True, 6), cfg, "icp-planar")

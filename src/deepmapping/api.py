@@ -77,7 +77,7 @@ def register(scans: ScanSet, config: Config | None = None, *, checkpoint: str | 
         result = _finish(scans, cfg, poses, t0, init=init)
         result.method_info = info
         return result
-    cfg = cfg.model_copy(update={"optim": cfg.optim.model_copy(update={"mnet_warmup_epochs": resolve_mnet_warmup(scans, cfg)})})
+    cfg = cfg.with_overrides(start_settings(scans, cfg))
     saved = _load_checkpoint(checkpoint, cfg) if resume else None
     if saved is not None:
         init = np.asarray(saved["init_poses_input"])
@@ -139,10 +139,16 @@ def warm_start_poses(scans: ScanSet, cfg: Config, progress=None) -> np.ndarray:
 # 256-scan trajectories: loop closure alone 0.07-0.36 px where point-to-plane ICP is 0.56-3.1 px, and
 # DeepMapping from it ends lower than from ICP; simulated 1024 and 4096 scans: ICP drifts 9-55 px)
 LONG_SEQUENCE = 128
-# optim.mnet_warmup_epochs "auto": epochs of M-Net-only training from a loop-closure start (released at
-# once, its poses follow an M-Net with no map yet: 256 scans 0.20 px -> 3.9 px at epoch 10, 0.70 px at the
-# end; with the warm-up 0.36 px). From a point-to-plane ICP start (3.3 px) it hurt (0.76 -> 2.0 px): none.
+# Settings "auto" that follow the warm start (start_settings), from a loop-closure start (0.1-0.4 px from
+# the truth on the paper's trajectories) and from any other:
+# - optim.mnet_warmup_epochs: epochs of M-Net-only training. Released at once, the poses follow an M-Net
+#   with no map yet (256 scans: 0.20 px -> 3.9 px at epoch 10, 0.70 px at the end; with the warm-up 0.36
+#   px); from a point-to-plane ICP start (3.3 px) the warm-up hurt (0.76 -> 2.0 px).
 LOOP_WARMUP_EPOCHS = 25
+START_SETTINGS = {
+    "loop-closure": {"optim.mnet_warmup_epochs": LOOP_WARMUP_EPOCHS},
+    "other": {"optim.mnet_warmup_epochs": 0},
+}
 
 
 def auto_warm_start(scans: ScanSet) -> str:
@@ -162,14 +168,13 @@ def auto_warm_start(scans: ScanSet) -> str:
     return "icp-planar" if scans.grid_shape is not None and scans.pose_dof == 3 else "icp-plane"
 
 
-def resolve_mnet_warmup(scans: ScanSet, cfg: Config) -> int:
-    """optim.mnet_warmup_epochs for this run: as given, or "auto" = LOOP_WARMUP_EPOCHS when the warm
-    start (as warm_start "auto" resolves it) is loop closure, else 0."""
-    epochs = cfg.optim.mnet_warmup_epochs
-    if epochs != "auto":
-        return epochs
+def start_settings(scans: ScanSet, cfg: Config) -> dict:
+    """The values this run's settings "auto" of START_SETTINGS take (only those given as "auto"), by the
+    warm start as warm_start "auto" resolves it: loop closure (2D) or any other."""
     ws = cfg.warm_start.method if cfg.warm_start.method != "auto" else auto_warm_start(scans)
-    return LOOP_WARMUP_EPOCHS if ws == "loop-closure" else 0
+    table = START_SETTINGS["loop-closure" if ws == "loop-closure" and not scans.is_3d else "other"]
+    given = cfg.model_dump()
+    return {key: value for key, value in table.items() if given[key.split(".")[0]][key.split(".")[1]] == "auto"}
 
 
 # loss.odometry_sigma "auto" with the scans' own recorded poses as the warm start: [sigma_t (scan units:

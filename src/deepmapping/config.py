@@ -138,7 +138,7 @@ class OptimConfig(_Section):
     batch_order: Literal["contiguous", "random", "place"] = "contiguous"
     epochs: int = Field(3000, ge=0)
     max_time_s: NonNegFloat | None = None  # stop after this much wall time (None = no limit)
-    # first epochs train the M-Net only (poses held at the warm start); "auto": api.LOOP_WARMUP_EPOCHS when the
+    # first epochs train the M-Net only (poses held at the warm start); "auto": api.START_SETTINGS, 25 when the
     # warm start is loop closure (its poses are nearer than the loss's first steps leave them), else none
     mnet_warmup_epochs: NonNegInt | Literal["auto"] = 0
     # ... and at least this many first optimizer steps: a run over few scans has few steps an epoch

@@ -107,15 +107,16 @@ def run_register(data: Path, out: Path, cfg, fmt, gt, resume: bool, plots: bool 
 def settings_line(scans, cfg) -> str:
     """What the run uses where the data chose it: 'settings: profile handheld, warm start icp-plane
     (auto), 200 epochs' (the whole config goes to config.yaml)."""
-    from deepmapping.api import BASELINES, auto_warm_start, resolve_mnet_warmup
+    from deepmapping.api import BASELINES, auto_warm_start, start_settings
 
     line = f"settings: profile {cfg.profile}"
     if cfg.method in BASELINES:  # a classical method: no warm start, no epochs
         return f"{line}, method {cfg.method}"
     ws = cfg.warm_start.method
     line = f"{line}, warm start {auto_warm_start(scans) + ' (auto)' if ws == 'auto' else ws}, {cfg.optim.epochs} epochs"
-    warmup = resolve_mnet_warmup(scans, cfg)
-    return line + (f", the first {warmup} M-Net only" if warmup and cfg.optim.mnet_warmup_epochs == "auto" else "")
+    derived = start_settings(scans, cfg)
+    warmup = derived.get("optim.mnet_warmup_epochs")
+    return line + (f", the first {warmup} M-Net only" if warmup else "")
 
 
 def interrupted(data: Path, out: Path) -> None:
