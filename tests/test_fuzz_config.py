@@ -61,7 +61,7 @@ def assert_sane(cfg: Config) -> None:
     assert o.mnet_warmup_epochs == "auto" or o.mnet_warmup_epochs >= 0
     assert o.lr_final_factor >= 0 and o.checkpoint_every_s >= 0
     assert (o.max_time_s is None or o.max_time_s >= 0) and (o.early_stop_tol is None or o.early_stop_tol >= 0)
-    assert lo.free_samples >= 0 and lo.near_hit_samples >= 0 and lo.near_hit_distance >= 0
+    assert lo.free_samples >= 0 and (lo.near_hit_samples == "auto" or lo.near_hit_samples >= 0) and lo.near_hit_distance >= 0
     assert lo.chamfer_weight >= 0 and lo.chamfer_window >= 0 and (lo.beams_per_scan in (None, "auto") or lo.beams_per_scan >= 1)
     for v in (ic.voxel_size, ic.max_correspondence_distance, cfg.eval.voxel_size, cfg.eval.success_threshold):
         assert v is None or v > 0

@@ -71,7 +71,9 @@ class MNetConfig(_Section):
 
     # "resmlp": residual blocks RB(n) of two FC(n) layers, one per entry of ``hidden``
     # (supplementary A: RB(64)-RB(64)-RB(64)-RB(128)-RB(128))
-    kind: Literal["mlp", "resmlp", "fourier", "grid"] = "mlp"
+    # "auto" (default profile): "grid" from a loop-closure start, else "fourier" (api.START_SETTINGS; a model
+    # built directly from "auto" takes "fourier")
+    kind: Literal["mlp", "resmlp", "fourier", "grid", "auto"] = "mlp"
     hidden: list[PosInt] = [64, 512, 512, 256, 128]
     fourier_features: int = Field(0, ge=0)  # number of log-spaced frequencies per axis (kind="fourier")
     fourier_max_freq: float = Field(32.0, gt=0)  # highest frequency: period 2/f on the map normalized to [-1, 1]
@@ -93,7 +95,9 @@ class MNetConfig(_Section):
 class LossConfig(_Section):
     free_samples: int = Field(19, ge=0)  # free-space samples per beam (paper: 19)
     free_sampling: Literal["uniform", "stratified"] = "uniform"
-    near_hit_samples: int = Field(0, ge=0)  # extra free-space samples on each beam just before its hit
+    # extra free-space samples on each beam just before its hit; "auto" (default profile): 4 from a loop-closure
+    # start, else 0 (api.START_SETTINGS; a Trainer built directly from "auto" takes 0)
+    near_hit_samples: NonNegInt | Literal["auto"] = 0
     near_hit_distance: float = Field(0.02, ge=0)  # ... within this distance of the hit (normalized map units)
     # None = every beam each step; else a random subset of this many; "auto": 32 for depth images and
     # scans of 128 beams or more, else 64 (solver.resolution.resolve_step)

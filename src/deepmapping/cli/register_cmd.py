@@ -116,7 +116,10 @@ def settings_line(scans, cfg) -> str:
     line = f"{line}, warm start {auto_warm_start(scans) + ' (auto)' if ws == 'auto' else ws}, {cfg.optim.epochs} epochs"
     derived = start_settings(scans, cfg)
     warmup = derived.get("optim.mnet_warmup_epochs")
-    return line + (f", the first {warmup} M-Net only" if warmup else "")
+    line += f", the first {warmup} M-Net only" if warmup else ""
+    line += ", grid M-Net" if derived.get("mnet.kind") == "grid" else ""
+    near = derived.get("loss.near_hit_samples")
+    return line + (f", {near} free-space samples near each hit" if near else "")
 
 
 def interrupted(data: Path, out: Path) -> None:

@@ -202,17 +202,18 @@ class MNet(nn.Module):
         super().__init__()
         self.encoding: nn.Module = nn.Identity()
         prev = in_dim
-        if cfg.kind == "fourier":
+        kind = "fourier" if cfg.kind == "auto" else cfg.kind  # "auto" unresolved (a model built directly)
+        if kind == "fourier":
             self.encoding = FourierEncoding(in_dim, cfg.fourier_features, cfg.fourier_max_freq)
             prev = self.encoding.out_dim
-        elif cfg.kind == "grid":
+        elif kind == "grid":
             if in_dim != 2:
                 raise ValueError("the grid M-Net is 2D only")
             self.encoding = GridEncoding(cfg.grid_levels, cfg.grid_features, cfg.grid_base, cfg.grid_finest)
             prev = self.encoding.out_dim
         layers: list[nn.Module] = []
         for ch in cfg.hidden:
-            layers += [ResidualBlock(prev, ch)] if cfg.kind == "resmlp" else [nn.Linear(prev, ch), nn.ReLU()]
+            layers += [ResidualBlock(prev, ch)] if kind == "resmlp" else [nn.Linear(prev, ch), nn.ReLU()]
             prev = ch
         layers.append(nn.Linear(prev, 1))
         self.mlp = nn.Sequential(*layers)

@@ -171,8 +171,9 @@ class Trainer:
             return x if own is None else x[:own]
 
         t = free_space_fractions(mine(pv).shape, cfg.free_samples, cfg.free_sampling, self.gen, self.device)
-        if cfg.near_hit_samples:
-            t = torch.cat([t, near_hit_fractions(mine(pts), cfg.near_hit_samples, cfg.near_hit_distance, self.gen)], -1)
+        near = 0 if cfg.near_hit_samples == "auto" else cfg.near_hit_samples  # api.register resolves "auto" first
+        if near:
+            t = torch.cat([t, near_hit_fractions(mine(pts), near, cfg.near_hit_distance, self.gen)], -1)
         free_global = transform(mine(poses), free_space_points(mine(pts), t))
         occ_logits = self.model.mnet(mine(occ_global))  # (B, M)
         free_logits = self.model.mnet(free_global)  # (B, M, S)
