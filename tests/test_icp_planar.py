@@ -108,7 +108,7 @@ def test_auto_warm_start_and_errors():
     assert other == {"optim.mnet_warmup_epochs": 0, "mnet.kind": "fourier", "loss.near_hit_samples": 0}
     assert (cfg2.optim.mnet_warmup_epochs, cfg2.mnet.kind, cfg2.loss.near_hit_samples) == ("auto", "auto", "auto")
     assert start_settings(scans_2d(LONG_SEQUENCE, True), cfg2) == near
-    assert start_settings(log, cfg2) == near  # keyframed logs start from loop closure
+    assert start_settings(log, cfg2) == START_SETTINGS["log"] == other | {"optim.mnet_warmup_epochs": LOOP_WARMUP_EPOCHS}
     assert start_settings(scans_2d(LONG_SEQUENCE - 1, True), cfg2) == other  # icp-plane
     assert start_settings(scans_2d(8, True), cfg2.with_overrides({"warm_start.method": "loop-closure"})) == near
     assert start_settings(scans_2d(LONG_SEQUENCE, True), cfg2.with_overrides({"warm_start.method": "icp-plane"})) == other

@@ -71,8 +71,8 @@ class MNetConfig(_Section):
 
     # "resmlp": residual blocks RB(n) of two FC(n) layers, one per entry of ``hidden``
     # (supplementary A: RB(64)-RB(64)-RB(64)-RB(128)-RB(128))
-    # "auto" (default profile): "grid" from a loop-closure start, else "fourier" (api.START_SETTINGS; a model
-    # built directly from "auto" takes "fourier")
+    # "auto" (default profile): "grid" from a loop-closure start (not a keyframed log's), else "fourier"
+    # (api.START_SETTINGS; a model built directly from "auto" takes "fourier")
     kind: Literal["mlp", "resmlp", "fourier", "grid", "auto"] = "mlp"
     hidden: list[PosInt] = [64, 512, 512, 256, 128]
     fourier_features: int = Field(0, ge=0)  # number of log-spaced frequencies per axis (kind="fourier")
@@ -96,7 +96,7 @@ class LossConfig(_Section):
     free_samples: int = Field(19, ge=0)  # free-space samples per beam (paper: 19)
     free_sampling: Literal["uniform", "stratified"] = "uniform"
     # extra free-space samples on each beam just before its hit; "auto" (default profile): 4 from a loop-closure
-    # start, else 0 (api.START_SETTINGS; a Trainer built directly from "auto" takes 0)
+    # start (not a keyframed log's), else 0 (api.START_SETTINGS; a Trainer built directly from "auto" takes 0)
     near_hit_samples: NonNegInt | Literal["auto"] = 0
     near_hit_distance: float = Field(0.02, ge=0)  # ... within this distance of the hit (normalized map units)
     # None = every beam each step; else a random subset of this many; "auto": 32 for depth images and
