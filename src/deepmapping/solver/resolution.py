@@ -52,7 +52,7 @@ def fourier_encoding(cfg: MNetConfig, spacing: float, scale: float) -> tuple[flo
     (2 / f in normalized units) is at most that many spacings, with bands added at the same log
     spacing (band k at f_max^(k / (n - 1)))."""
     base, bands = cfg.fourier_max_freq, cfg.fourier_features
-    if cfg.kind not in ("fourier", "auto") or cfg.fourier_period_spacings <= 0 or bands < 2 or not spacing > 0:
+    if cfg.kind != "fourier" or cfg.fourier_period_spacings <= 0 or bands < 2 or not spacing > 0:
         return base, bands
     wanted = 2.0 * scale / (cfg.fourier_period_spacings * spacing)
     if wanted <= base or base <= 1.0:
@@ -63,9 +63,8 @@ def fourier_encoding(cfg: MNetConfig, spacing: float, scale: float) -> tuple[flo
 def resolve(cfg: MNetConfig, spacing: float, scale: float) -> tuple[MNetConfig, dict]:
     """The M-Net settings the model is built with, and what to report (data units)."""
     f, n = fourier_encoding(cfg, spacing, scale)
-    fourier = cfg.kind in ("fourier", "auto")
     report = {"point_spacing": spacing, "map_half_extent": scale, "fourier_max_freq": f, "fourier_features": n,
-              "finest_period": 2.0 * scale / f if fourier and n else None,
+              "finest_period": 2.0 * scale / f if cfg.kind == "fourier" and n else None,
               "grid_finest_cell": 2.0 * scale / cfg.grid_finest if cfg.kind == "grid" else None}
     return cfg.model_copy(update={"fourier_max_freq": f, "fourier_features": n}), report
 
