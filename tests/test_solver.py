@@ -553,3 +553,24 @@ def test_the_auto_step_follows_the_scans_length():
         assert convs and all(m.stride == (stride,) for m in convs)
         trainer = Trainer(cfg, model, torch.ones(2, beams, dtype=torch.bool), ordered=True)
         assert trainer.beams_per_scan == (32 if beams == 256 else 64) and trainer.cfg.loss.beams_per_scan == "auto"
+
+
+def test_coarse_to_fine_opens_grid_levels_in_order_and_keeps_checkpoints_loadable():
+    """mnet.coarse_to_fine reaches the grid M-Net too (the trainer calls set_progress on any encoding
+    that has it): the coarsest level alone at 0, every level at 1; the weights are not saved, so
+    checkpoints of grid models from before load as they are."""
+    from deepmapping.solver.networks import GridEncoding
+
+    enc = GridEncoding(levels=3, features=2, base=4, finest=16)
+    x = torch.rand(7, 2) * 2 - 1
+    full = enc(x)
+    enc.set_progress(0.0)
+    assert torch.equal(enc.level_weights, torch.tensor([1.0, 0.0, 0.0]))
+    out = enc(x)
+    torch.testing.assert_close(out[:, :2], full[:, :2])  # level order: coarsest first
+    torch.testing.assert_close(out[:, 2:], torch.zeros(7, 4))
+    enc.set_progress(0.5)
+    torch.testing.assert_close(enc.level_weights, torch.tensor([1.0, 1.0, 0.0]))
+    enc.set_progress(1.0)
+    torch.testing.assert_close(enc(x), full)
+    assert "level_weights" not in enc.state_dict()

@@ -88,7 +88,7 @@ class MNetConfig(_Section):
     grid_finest: int = Field(512, ge=1)
     lr_factor: float = Field(1.0, ge=0)  # M-Net learning rate = optim.lr * lr_factor
     # kind="fourier": open the frequency bands coarse to fine over this fraction of the epochs
-    # (BARF-style; 0 = all bands from the start)
+    # (BARF-style; 0 = all bands from the start); kind="grid": the levels, likewise
     coarse_to_fine: float = Field(0.0, ge=0, le=1)
 
 

@@ -164,12 +164,20 @@ class GridEncoding(nn.Module):
         growth = (finest / base) ** (1.0 / max(levels - 1, 1))
         res = [int(round(base * growth**i)) for i in range(levels)]
         self.grids = nn.ParameterList(nn.Parameter(torch.empty(1, features, r, r).uniform_(-1e-2, 1e-2)) for r in res)
+        self.register_buffer("level_weights", torch.ones(levels), persistent=False)  # set each epoch (trainer)
         self.out_dim = levels * features
+
+    def set_progress(self, progress: float) -> None:
+        """``mnet.coarse_to_fine`` for the grid: the levels open one after the other, as FourierEncoding's
+        bands; progress 0 keeps the coarsest level alone, 1 (the default) uses every level."""
+        alpha = 1.0 + min(max(progress, 0.0), 1.0) * (len(self.grids) - 1)
+        k = torch.arange(len(self.grids), dtype=self.level_weights.dtype, device=self.level_weights.device)
+        self.level_weights.copy_((1 - torch.cos(math.pi * (alpha - k).clamp(0.0, 1.0))) / 2)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         flat = x.reshape(1, 1, -1, 2)
-        feats = [torch.nn.functional.grid_sample(g, flat, mode="bilinear", padding_mode="border", align_corners=True)
-                 for g in self.grids]
+        feats = [w * torch.nn.functional.grid_sample(g, flat, mode="bilinear", padding_mode="border", align_corners=True)
+                 for g, w in zip(self.grids, self.level_weights)]
         return torch.cat(feats, dim=1)[0, :, 0].T.reshape(*x.shape[:-1], -1)
 
 
