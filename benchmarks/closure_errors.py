@@ -5,10 +5,12 @@
 
 DIR is a `deepmapping simulate` folder (the authors' layout, gt_pose.mat). Runs
 ``methods.loop_closure.close_loops`` as the default warm start does (no odometry: every match from
-the identity, no prior; ``scale`` from the scans' ranges) and prints the trajectory's ATE, the scale
-a similarity alignment would add (a trajectory that shrank or grew), how many loop closures there
-are, how many are more than --bad px from the truth, and the mean error of the closures in bands of
-distance between their keyframes (too short = negative). --set takes close_loops' keyword arguments.
+the identity, no prior, or with ``--set constant_velocity=true`` from the previous keyframe's motion;
+``scale`` from the scans' ranges) and prints the trajectory's ATE, the scale a similarity alignment
+would add (a trajectory that shrank or grew), how many loop closures there are, how many are more
+than --bad px from the truth, and the mean error of the closures in bands of distance between their
+keyframes (too short = negative). --set takes the config's `loop` settings and close_loops' other
+keyword arguments.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from deepmapping.evaluation.metrics import ate
 from deepmapping.geometry import se2
 from deepmapping.io.loaders import load_authors
 from deepmapping.methods.loop_closure import close_loops, data_scale
+from deepmapping.methods.registry import loop_closure_settings
 
 
 def similarity_scale(est, gt) -> float:
@@ -47,11 +50,10 @@ def main() -> None:
         scans = load_authors(args.data)
     except InputError as e:
         sys.exit(f"closure_errors: {e}")
-    settings = LoopClosureConfig().model_dump() | {"odometry_sigma": None}
-    settings["scale"] = data_scale(scans.points, scans.valid)
-    for item in args.set:
-        key, value = item.split("=", 1)
-        settings[key] = json.loads(value)
+    given = dict((item.split("=", 1)[0], json.loads(item.split("=", 1)[1])) for item in args.set)
+    loop = LoopClosureConfig(**{k: v for k, v in given.items() if k in LoopClosureConfig.model_fields})
+    settings = loop_closure_settings(loop, data_scale(scans.points, scans.valid), odometry=False)
+    settings |= {k: v for k, v in given.items() if k not in LoopClosureConfig.model_fields}
     start = time.perf_counter()
     poses, edges = close_loops(scans.points, scans.valid, np.zeros((scans.num_scans, 3)), **settings)
     seconds = time.perf_counter() - start

@@ -238,9 +238,10 @@ def test_lengths_follow_the_scans_scale(ring):
     assert np.abs(unscaled[:, :2] / c - ref[:, :2]).max() > 0.1
 
 
-def test_loop_closure_without_odometry_has_no_odometry_prior(monkeypatch):
-    """Scans with no odometry (a folder of scans): each match starts from the identity and no prior
-    holds it there; the lengths follow the scans' ranges."""
+def test_loop_closure_without_odometry_holds_each_match_at_the_previous_motion(monkeypatch):
+    """Scans with no odometry (a folder of scans): each sequential match starts from the identity with
+    no prior, or with loop.constant_velocity from the previous keyframe's motion, held by
+    loop.odometry_sigma; the lengths follow the scans' ranges."""
     import deepmapping.methods.registry as registry
 
     seen = {}
@@ -256,10 +257,41 @@ def test_loop_closure_without_odometry_has_no_odometry_prior(monkeypatch):
     scans = ScanSet(points=points.astype(np.float32), valid=np.ones((3, 64), bool), ordered=True)
     cfg = load_config()
     baseline_poses(scans, cfg, "loop-closure")
-    assert seen["odometry_sigma"] is None
+    assert seen["constant_velocity"] is False and seen["odometry_sigma"] is None
     assert seen["scale"] == pytest.approx(2.0, rel=0.01)  # median range 4 m / 2 m
-    baseline_poses(scans, cfg.with_overrides({"loop.scale": 0.5}), "loop-closure")
-    assert seen["scale"] == 0.5
+    moving = cfg.with_overrides({"loop.scale": 0.5, "loop.constant_velocity": True})
+    baseline_poses(scans, moving, "loop-closure")
+    assert seen["scale"] == 0.5 and seen["odometry_sigma"] == (0.1, 5.0) and seen["constant_velocity"] is True
+    baseline_poses(scans, moving, "loop-closure", init=np.zeros((3, 3)))  # odometry: its motions, never the last match's
+    assert seen["constant_velocity"] is False and seen["odometry_sigma"] == (0.1, 5.0)
+
+
+def test_constant_velocity_keeps_the_pace_along_a_featureless_corridor():
+    """A robot leaves a room with boxes and drives 24 m down a straight corridor whose end it never
+    sees: from the identity the sequential matches slide (nothing in the scans says how far each step
+    went: 3.8 m of the 24 when written), from the previous keyframe's motion they keep its pace."""
+    from deepmapping.config import LoopClosureConfig
+    from deepmapping.methods.registry import loop_closure_settings
+
+    free = np.zeros((60, 600), bool)
+    free[21:40, 4:596] = True  # the corridor, 1 m wide
+    free[4:56, 4:80] = True  # the room at its start
+    rng = np.random.default_rng(0)
+    for _ in range(12):
+        x, y = rng.integers(8, 70), rng.integers(6, 50)
+        if not 18 < y < 44:
+            free[y:y + 4, x:x + 4] = False
+    xs = np.arange(20, 500, 5.0)
+    points, valid = simulate_scans(free, np.column_stack([xs, np.full_like(xs, 30.0), np.zeros_like(xs)]),
+                                   num_beams=180, max_range=60)
+    truth = (xs[-1] - xs[0]) * PX
+    length = {}
+    for cv in (True, False):
+        settings = loop_closure_settings(LoopClosureConfig(constant_velocity=cv), 1.0, odometry=False)
+        est, _ = close_loops(points * PX, valid, np.zeros((len(xs), 3)), **settings)
+        length[cv] = np.linalg.norm(np.diff(est[:, :2], axis=0), axis=1).sum()
+    assert length[True] == pytest.approx(truth, rel=0.02)
+    assert length[False] < 0.5 * truth
 
 
 def test_a_closure_further_than_the_drift_allows_is_not_kept(ring):

@@ -14,7 +14,7 @@ from typing import Callable
 
 import numpy as np
 
-from deepmapping.config import Config
+from deepmapping.config import Config, LoopClosureConfig
 from deepmapping.data import ScanSet
 from deepmapping.errors import ConfigError
 from deepmapping.methods.goicp import incremental_goicp
@@ -101,6 +101,15 @@ def _icp_plane(scans, cfg, init=None, progress=None):
     return _incremental_icp(scans, cfg, init, progress, "plane")
 
 
+def loop_closure_settings(loop: LoopClosureConfig, scale: float, odometry: bool) -> dict:
+    """close_loops' keyword arguments from ``loop`` settings: with odometry its motions are the
+    sequential matches' prior; without, the previous keyframe's motion is (``loop.constant_velocity``)
+    or there is none."""
+    constant_velocity = loop.constant_velocity and not odometry
+    odometry_sigma = (tuple(loop.odometry_sigma) or None) if odometry or constant_velocity else None
+    return loop.model_dump() | {"odometry_sigma": odometry_sigma, "scale": scale, "constant_velocity": constant_velocity}
+
+
 @_method("loop-closure", (2,), "incremental ICP, loop closures and a pose graph", "2D logs",
          hint_other_dims=" (3D: multiway)")
 def _loop_closure(scans, cfg, init=None, progress=None):
@@ -108,8 +117,7 @@ def _loop_closure(scans, cfg, init=None, progress=None):
     ``loop.odometry_sigma``) or from the identity (no odometry, no prior; methods.loop_closure);
     lengths scaled to the scans' ranges (``loop.scale``, methods.loop_closure.data_scale)."""
     scale = data_scale(scans.points, scans.valid) if cfg.loop.scale == "auto" else cfg.loop.scale
-    odometry_sigma = (tuple(cfg.loop.odometry_sigma) or None) if init is not None else None
-    settings = cfg.loop.model_dump() | {"odometry_sigma": odometry_sigma, "scale": scale}
+    settings = loop_closure_settings(cfg.loop, scale, odometry=init is not None)
     guess = scans.identity_poses() if init is None else init
     poses, edges = close_loops(scans.points, scans.valid, guess, **settings, progress=progress)
     return poses, {"loop_scale": scale, "loop_closures": sum(e.j - e.i > 1 for e in edges)}
