@@ -292,7 +292,7 @@ class LoopClosureConfig(_Section):
     # scans without odometry (a simulated trajectory, a folder of scans): true = each sequential match
     # starts from the previous keyframe's motion (constant velocity), held by odometry_sigma as odometry
     # would be; false = from the identity with no prior, where a straight corridor lets a match slide.
-    # Off by default: on the paper's 71 trajectories 5 loop closures end over 1 px from the truth
+    # Off by default: on the paper's 75 trajectories 5 loop closures end over 1 px from the truth
     # against 7, but a 4096-scan one goes from 2.15 to 9.98 px (docs/results.md)
     constant_velocity: bool = False
     # a loop closure is kept only where the matched walls fix both translation directions:

@@ -90,9 +90,9 @@ def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float =
     point-to-line ICP within ``inlier_distance`` over the pairs whose sensors see the surface from
     the same side (a wall seen from both rooms pulls a match by its thickness towards its other
     face). ``constant_velocity`` (scans without odometry): each sequential match starts from the
-    previous keyframe's motion instead of ``init_poses``', and ``odometry_sigma`` holds it there (none
+    previous keyframe's motion instead of ``init_poses``' motions, and ``odometry_sigma`` holds it there (none
     for the second keyframe); a straight corridor then keeps the robot's pace, where from the identity
-    the match slides (the paper's simulated trajectories: 7 of 71 over 1 px from the truth, 5 with it;
+    the match slides (the paper's simulated trajectories: 7 of 75 over 1 px from the truth, 5 with it;
     but a 4096-scan one 2.15 -> 9.98 px: off by default, ``loop.constant_velocity``).
     ``scale`` multiplies every length (``radius``, ``inlier_distance``, the odometry's
     metres, ``edge_sigma``, the pose graph's translation standard deviation, and the point-to-line
