@@ -125,6 +125,13 @@ class LNet(nn.Module):
         return self.out(self.head(pooled))
 
 
+def _open_window(weights: torch.Tensor, alpha: float) -> None:
+    """BARF's raised-cosine window in place: entry k gets (1 - cos(pi * clamp(alpha - k, 0, 1))) / 2,
+    so the first floor(alpha) entries are open, the next one partly, the rest shut."""
+    k = torch.arange(len(weights), dtype=weights.dtype, device=weights.device)
+    weights.copy_((1 - torch.cos(math.pi * (alpha - k).clamp(0.0, 1.0))) / 2)
+
+
 class FourierEncoding(nn.Module):
     """Axis-aligned sin/cos features at log-spaced frequencies (period 2/f on a [-1, 1] map).
 
@@ -141,9 +148,7 @@ class FourierEncoding(nn.Module):
         self.out_dim = in_dim * (1 + 2 * num_freqs)
 
     def set_progress(self, progress: float) -> None:
-        alpha = min(max(progress, 0.0), 1.0) * len(self.freqs)
-        k = torch.arange(len(self.freqs), dtype=self.freqs.dtype, device=self.freqs.device)
-        self.band_weights.copy_((1 - torch.cos(math.pi * (alpha - k).clamp(0.0, 1.0))) / 2)
+        _open_window(self.band_weights, min(max(progress, 0.0), 1.0) * len(self.freqs))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         arg = x[..., :, None] * self.freqs  # (..., D, F)
@@ -170,9 +175,7 @@ class GridEncoding(nn.Module):
     def set_progress(self, progress: float) -> None:
         """``mnet.coarse_to_fine`` for the grid: the levels open one after the other, as FourierEncoding's
         bands; progress 0 keeps the coarsest level alone, 1 (the default) uses every level."""
-        alpha = 1.0 + min(max(progress, 0.0), 1.0) * (len(self.grids) - 1)
-        k = torch.arange(len(self.grids), dtype=self.level_weights.dtype, device=self.level_weights.device)
-        self.level_weights.copy_((1 - torch.cos(math.pi * (alpha - k).clamp(0.0, 1.0))) / 2)
+        _open_window(self.level_weights, 1.0 + min(max(progress, 0.0), 1.0) * (len(self.grids) - 1))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         flat = x.reshape(1, 1, -1, 2)
