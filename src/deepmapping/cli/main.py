@@ -35,11 +35,16 @@ PROFILE_HELP = (" | ".join(p for p in PROFILES if not p.endswith("-3d"))  # the 
                     "  deepmapping simulate data/custom --map mymap.png --poses 128\n\n"
                     "  deepmapping simulate data/paper --paper-dataset\n\n"
                     "  deepmapping simulate data/avd --kind rgbd --trajectories 10 --frames 16\n\n"
-                    "  deepmapping simulate data/lidar --kind lidar --lidar-beams 32")
+                    "  deepmapping simulate data/lidar --kind lidar --lidar-beams 32\n\n"
+                    "  deepmapping simulate data/fhw --kind odometry --log ../shared/data/carmen/corrected/fhw-corrected.log.gz")
 def simulate(
     out: Path = typer.Argument(..., help="Folder to write (2D: authors' layout 000.pcd…, gt_pose.mat, map.png; "
                                          "3D: traj_000/, traj_001/, …)."),
-    kind: str = typer.Option("2d", help="2d (laser, §4.1) | rgbd (AVD-like depth images, §4.2) | lidar (3D, 6-DoF)."),
+    kind: str = typer.Option("2d", help="2d (laser, §4.1) | rgbd (AVD-like depth images, §4.2) | lidar (3D, 6-DoF) | "
+                             "odometry (a corrected CARMEN log, --log, with simulated wheel odometry: <site>.clf and "
+                             "<site>.relations)."),
+    log: Optional[Path] = typer.Option(None, help="odometry: the corrected log (*-corrected.log.gz) whose scans and "
+                                       "poses (the reference) to use."),
     trajectories: int = typer.Option(10, help="3D: number of trajectories."),
     frames: int = typer.Option(16, help="3D: frames per trajectory (AVD: 8 or 16)."),
     lidar_beams: int = typer.Option(16, help="lidar: 16, 32 or 64 beams."),
@@ -61,8 +66,11 @@ def simulate(
     if kind in ("rgbd", "lidar"):
         _simulate_3d(out, kind, trajectories, frames, seed, lidar_beams, noise, lidar_step)
         return
+    if kind == "odometry":
+        _simulate_odometry(out, log, seed)
+        return
     if kind != "2d":
-        raise typer.BadParameter(f"--kind must be 2d, rgbd or lidar, got {kind!r}")
+        raise typer.BadParameter(f"--kind must be 2d, rgbd, lidar or odometry, got {kind!r}")
 
     if paper_dataset:
         folders = dataset.paper_dataset(out, seed=seed)
@@ -73,6 +81,16 @@ def simulate(
                              max_rotation_deg=rotation, mean_step_px=step, range_noise_px=noise)
     dataset.write_authors_layout(out, scans, occ=occ)
     typer.echo(f"wrote {poses} scans to {out} (picture: {out / 'map.png'})")
+
+
+def _simulate_odometry(out: Path, log: Optional[Path], seed: int) -> None:
+    from deepmapping.sim.odometry import simulated_log
+
+    if log is None:
+        raise ConfigError("--kind odometry needs --log CORRECTED (a corrected CARMEN log, e.g. fhw-corrected.log.gz)")
+    log_path, relations_path, s = simulated_log(log, out, seed)
+    typer.echo(f"wrote {log_path} ({s['scans']} scans, {s['path_m']:.0f} m, odometry {s['end_error_m']:.1f} m off at "
+               f"the end{'' if s['own_timestamps'] else '; timestamps from the path at 0.5 m/s'}) and {relations_path}")
 
 
 def _simulate_3d(out: Path, kind: str, trajectories: int, frames: int, seed: int, beams: int, noise: float,

@@ -31,10 +31,11 @@ import numpy as np
 
 from deepmapping.data import FullSequence, ScanSet
 from deepmapping.errors import ConfigError, InputError
+from deepmapping.io.atomic import atomic_write
 from deepmapping.sequence import select_keyframes
 
-__all__ = ["CarmenLog", "read_carmen", "match_scans", "open_text", "is_carmen_file", "CARMEN_SUFFIXES", "FLASER_MAX_RANGE",
-           "saturation_range"]
+__all__ = ["CarmenLog", "read_carmen", "write_with_poses", "match_scans", "open_text", "is_carmen_file",
+           "CARMEN_SUFFIXES", "FLASER_MAX_RANGE", "saturation_range"]
 
 CARMEN_SUFFIXES = (".clf", ".log")
 FLASER_MAX_RANGE = 81.9  # the SICK's no-return value in the Freiburg logs (FLASER has no max field)
@@ -185,6 +186,38 @@ def read_carmen(path: str | os.PathLike, message: str | None = None) -> CarmenLo
         timestamps=np.array([r[4] for r in rows]), stamps=[r[5] for r in rows],
         lines=np.array([r[6] for r in rows]), max_range=max_range,
     )
+
+
+def write_with_poses(source: str | os.PathLike, out: str | os.PathLike, poses: np.ndarray,
+                     stamps: list[str] | None = None) -> None:
+    """Write ``source``'s laser messages (those ``read_carmen`` reads, in its order) to ``out``
+    (plain text) with their poses replaced by ``poses`` (S, 3): FLASER's laser pose and odometry
+    fields, ROBOTLASER1's laser and robot poses; ``stamps`` (S,) replace the timestamps
+    (``ipc_timestamp`` and ``logger_timestamp``). ODOM lines are left out (they would contradict
+    the new poses); other lines are kept. Atomic: ``out`` is whole or not written."""
+    log = read_carmen(source)
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.shape != (log.num_scans, 3) or (stamps is not None and len(stamps) != log.num_scans):
+        raise ValueError(f"{source}: {log.num_scans} scans, got {poses.shape[0]} poses"
+                         f"{'' if stamps is None else f' and {len(stamps)} timestamps'}")
+    rows = {int(line): k for k, line in enumerate(log.lines)}
+    lines = []
+    with open_text(source) as f:
+        for lineno, line in enumerate(f, start=1):
+            tok = line.split()
+            if tok and tok[0] == "ODOM":
+                continue
+            k = rows.get(lineno)
+            if k is not None:
+                at = 2 + int(tok[1]) if tok[0] == "FLASER" else 10 + int(tok[8]) + int(tok[9 + int(tok[8])])
+                pose = [f"{v:.6f}" for v in poses[k]]
+                tok[at:at + 6] = pose + pose
+                if stamps is not None:
+                    stamp_at = at + 6 if tok[0] == "FLASER" else at + 11
+                    tok[stamp_at] = tok[stamp_at + 2] = stamps[k]
+                line = " ".join(tok) + "\n"
+            lines.append(line if line.endswith("\n") else line + "\n")
+    atomic_write(out, lambda f: f.write("".join(lines).encode("ascii")))
 
 
 def saturation_range(ranges: np.ndarray) -> float:
