@@ -42,3 +42,23 @@ def test_quick_run_on_the_fr079_excerpt(tmp_path):
     text = (tmp_path / "report.md").read_text()
     assert "## fr079" in text and "| dm-odometry | 10 |" in text and "## intel" not in text
     assert json.loads((tmp_path / "experiment.json").read_text())["data"] == str(DATA)
+
+
+def test_a_site_with_only_its_corrected_log_runs_with_simulated_odometry(tmp_path):
+    """A corrected log of a SIMULATED site (here the fr079 excerpt's, under fhw's name) becomes the
+    runs ``fhw-sim-*``: its scans with simulated odometry, scored on relations derived from it."""
+    from deepmapping.experiments.runner import run_experiment
+
+    (tmp_path / "corrected").mkdir()
+    shutil.copy(DATA / "corrected" / "freiburg-079-corrected.log.gz", tmp_path / "corrected" / "fhw-corrected.log.gz")
+    keys = [j.key for j in carmen.jobs(False, str(tmp_path))]
+    assert keys == [f"fhw-sim-{m}" for m in carmen.SIM_METHODS]
+    out = tmp_path / "out"
+    res = run_experiment("carmen", out, quick=True, workers=1, data=tmp_path, only="fhw-sim-[ol]*")
+    assert res["errors"] == {}
+    rows = {r["name"]: r for r in res["results"].values()}
+    odometry, closed = rows["odometry"]["relations"], rows["loop-closure"]["relations"]
+    assert odometry["unmatched"] == 0 and odometry["all"]["count"] > 100
+    assert odometry["all"]["trans_mean_m"] > 0.05  # the simulated odometry drifts; the reference would score 0
+    assert closed["all"]["count"] == odometry["all"]["count"]
+    assert "## fhw-sim with simulated odometry (seed 0)" in (out / "report.md").read_text()

@@ -18,11 +18,18 @@ pose-graph optimization), ``dm-loop-closure`` (DeepMapping warm-started from it)
 (``corrected/<name>-corrected.log.gz``), matched to the raw scans by their ranges; the other
 rows are also scored on the relations the reference covers (both scans in the corrected log).
 Each run is done in a fresh process of its own, so its wall time and peak RSS are its own.
+
+Sites with a corrected log but no raw log (belgioioso, edmonton, fhw, freiburg-101: ``SIMULATED``)
+are logs nobody tuned on: ``<site>-sim`` is the corrected log's scans with simulated wheel odometry
+(``sim.odometry.simulated_log``, seed 0, written to a temporary folder by each run), scored on
+relations derived from the corrected poses; methods ``odometry``, ``loop-closure`` and the default
+(``dm-loop-closure``).
 """
 
 from __future__ import annotations
 
 import resource
+import tempfile
 import time
 from pathlib import Path
 
@@ -37,11 +44,16 @@ from deepmapping.experiments.report import write_report
 from deepmapping.io.loaders import load_scans
 from deepmapping.io.relations import corrected_trajectory
 from deepmapping.methods.keyframes import place_all_scans
+from deepmapping.sim.odometry import simulated_log
 
 DATA = "carmen"  # the folder under ../shared/data
 LOGS = ("intel", "fr079", "mit-csail")  # the logs with relations or a corrected log (derived relations)
 CORRECTED = {"intel": "intel-corrected.log.gz", "fr079": "freiburg-079-corrected.log.gz",
              "mit-csail": "csail-corrected.log.gz"}
+SIMULATED = {"belgioioso": "belgioioso-corrected.log.gz", "edmonton": "edmonton-corrected.log.gz",
+             "fhw": "fhw-corrected.log.gz", "freiburg-101": "freiburg-101-corrected.log.gz"}
+SIM_SUFFIX = "-sim"  # <site>-sim: a SIMULATED site's scans with simulated odometry
+SIM_METHODS = ("odometry", "loop-closure", "dm-loop-closure")
 METHODS = {  # name -> (method, warm start); "reference" is the corrected log
     "odometry": (None, "file"),
     "icp": ("icp-point", "file"),
@@ -83,12 +95,14 @@ def jobs(quick: bool, data: str) -> list[Job]:
     log; ``reference`` where the corrected log is there."""
     s = QUICK if quick else FULL
     logs = [g for g in LOGS if log_file(data, g) and (benchmark_relations(data, g) or corrected_file(data, g))]
-    if not logs:
+    simulated = [site + SIM_SUFFIX for site, name in SIMULATED.items() if (Path(data) / "corrected" / name).is_file()]
+    if not logs and not simulated:
         raise ConfigError(f"{data}: no log with its relations or a corrected log "
                           f"({', '.join(f'{g}.clf.bz2 + {g}.relations' for g in LOGS)})")
     out = []
-    for log in logs:
-        names = (["reference"] if corrected_file(data, log) else []) + list(METHODS)
+    for log in logs + simulated:
+        names = list(SIM_METHODS) if log in simulated else (["reference"] if corrected_file(data, log) else []) + list(
+            METHODS)
         out += [Job(f"{log}-{name}", "deepmapping.experiments.carmen:run",
                     {"data": data, "log": log, "name": name} | s) for name in names]
     return out
@@ -115,7 +129,20 @@ def _run_here(data: str, log: str, name: str, keyframes: str, epochs: int | None
 
 
 def _register(data: Path, log: str, name: str, keyframes: str, epochs: int | None, threads: int) -> dict:
+    if log.endswith(SIM_SUFFIX):
+        with tempfile.TemporaryDirectory() as tmp:
+            path, relations, _ = simulated_log(data / "corrected" / SIMULATED[log.removesuffix(SIM_SUFFIX)], tmp)
+            scans = load_scans(path, keyframes=keyframes)
+            poses, row = _poses(scans, name, epochs, threads)
+            return row | {"relations": evaluate_relations(scans, poses, relations)["relations"],
+                          "relations_source": "derived", "derived": None, "on_reference": None,
+                          "keyframes": scans.num_scans}
     scans = load_scans(log_file(data, log), keyframes=keyframes)
+    poses, row = _poses(scans, name, epochs, threads)
+    return row | _scores(data, log, scans, poses) | {"keyframes": scans.num_scans}
+
+
+def _poses(scans, name: str, epochs: int | None, threads: int) -> tuple[np.ndarray, dict]:
     method, warm = METHODS[name]
     if method is None:
         poses, row = scans.init_poses, {}
@@ -125,7 +152,7 @@ def _register(data: Path, log: str, name: str, keyframes: str, epochs: int | Non
             overrides["optim.epochs"] = epochs
         result = register(scans, load_config("default", overrides=overrides))
         poses, row = result.poses, {"runtime_s": result.runtime_s}
-    return row | _scores(data, log, scans, poses) | {"keyframes": scans.num_scans}
+    return poses, row
 
 
 def _scores(data: Path, log: str, scans, poses) -> dict:
@@ -182,14 +209,15 @@ def report(out: Path, results: dict[str, dict], quick: bool) -> Path:
                 "them, else on relations derived from its corrected log (3 000 random pairs of scans at most "
                 "1 m apart, 40 % over 10 s; the reference scores 0 on them). Short: relations spanning < 10 s, "
                 "long: > 10 s (mostly loop closures). Wall time and peak RSS: each run in its own process."]
-    for log in LOGS:
+    for log in [*LOGS, *(site + SIM_SUFFIX for site in SIMULATED)]:
         rows = [r for r in results.values() if r.get("log") == log]
         if not rows:
             continue
         order = ["reference", *METHODS]
         rows.sort(key=lambda r: order.index(r["name"]))
         source = rows[0].get("relations_source", "benchmark")
-        lines = [f"## {log} ({source} relations)", "",
+        what = " with simulated odometry (seed 0)" if log.endswith(SIM_SUFFIX) else ""
+        lines = [f"## {log}{what} ({source} relations)", "",
                  "| method | scans registered | relations scored | trans. (m) | rot. (deg) | short: trans. (m) "
                  "| long: trans. (m) | on the reference's relations: trans. (m) | rot. (deg) "
                  "| derived: short (m) | derived: long (m) | wall (s) | peak RSS (MB) |",
