@@ -375,3 +375,20 @@ def test_icp_does_not_match_the_two_faces_of_a_wall():
     seen, _ = icp_2d(source, target, target_origins=origins, **kw)
     assert plain[1] < truth[1] - w / 10, plain  # pulled towards the lower face
     np.testing.assert_allclose(seen, truth, atol=1e-6)
+
+
+def test_pick_keeps_the_match_near_the_odometry_unless_only_a_far_one_fits():
+    """The sequential match's choice (loop_closure._pick), odometry sigma (0.1 m, 5 deg): a far match
+    with a little more overlap loses to a near one that fits (a symmetric room matched 53 deg off);
+    a far one that alone fits wins (a wheel slip); where nothing fits, the nearest match or, with none
+    near, the odometry stands; without odometry the best overlap wins."""
+    from deepmapping.methods.loop_closure import _pick
+
+    guess, sigma = np.array([0.5, 0.0, 0.2]), (0.1, 5.0)
+    near, far = guess + [0.05, 0.0, np.radians(3.0)], guess + [0.0, 0.0, np.radians(53.0)]
+    slip = guess + [1.0, 0.0, 0.0]
+    assert np.array_equal(_pick([near, far], np.array([0.68, 0.81]), guess, sigma), near)
+    assert np.array_equal(_pick([near, slip], np.array([0.30, 0.90]), guess, sigma), slip)
+    assert np.array_equal(_pick([far, near], np.array([0.16, 0.12]), guess, sigma), near)
+    assert np.array_equal(_pick([far, slip], np.array([0.16, 0.12]), guess, sigma), guess)
+    assert np.array_equal(_pick([near, far], np.array([0.68, 0.81]), guess, None), far)
