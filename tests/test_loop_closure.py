@@ -377,18 +377,36 @@ def test_icp_does_not_match_the_two_faces_of_a_wall():
     np.testing.assert_allclose(seen, truth, atol=1e-6)
 
 
-def test_pick_keeps_the_match_near_the_odometry_unless_only_a_far_one_fits():
+def test_pick_keeps_the_match_near_the_odometry_unless_a_far_one_fits_clearly_better():
     """The sequential match's choice (loop_closure._pick), odometry sigma (0.1 m, 5 deg): a far match
-    with a little more overlap loses to a near one that fits (a symmetric room matched 53 deg off);
-    a far one that alone fits wins (a wheel slip); where nothing fits, the nearest match or, with none
-    near, the odometry stands; without odometry the best overlap wins."""
+    with a little more overlap loses to a near one (a symmetric room matched 53 deg off; a scan that
+    fits nowhere); a far one that fits clearly better wins (a wheel slip), as does the best when none
+    is near; without odometry the best overlap wins."""
     from deepmapping.methods.loop_closure import _pick
 
     guess, sigma = np.array([0.5, 0.0, 0.2]), (0.1, 5.0)
     near, far = guess + [0.05, 0.0, np.radians(3.0)], guess + [0.0, 0.0, np.radians(53.0)]
     slip = guess + [1.0, 0.0, 0.0]
     assert np.array_equal(_pick([near, far], np.array([0.68, 0.81]), guess, sigma), near)
-    assert np.array_equal(_pick([near, slip], np.array([0.30, 0.90]), guess, sigma), slip)
     assert np.array_equal(_pick([far, near], np.array([0.16, 0.12]), guess, sigma), near)
-    assert np.array_equal(_pick([far, slip], np.array([0.16, 0.12]), guess, sigma), guess)
+    assert np.array_equal(_pick([near, slip], np.array([0.60, 0.90]), guess, sigma), slip)
+    assert np.array_equal(_pick([far, slip], np.array([0.16, 0.12]), guess, sigma), far)
     assert np.array_equal(_pick([near, far], np.array([0.68, 0.81]), guess, None), far)
+
+
+def test_a_scan_that_fits_nowhere_keeps_its_odometry(ring):
+    """With odometry, the odometry motion itself is a candidate of the sequential match: a scan that
+    fits nowhere (random points, as a person in front of the laser) keeps the odometry motion rather
+    than wherever ICP wandered to; with a real scan the match still corrects the odometry."""
+    from deepmapping.methods.loop_closure import _sequential
+
+    points, valid, gt, _ = ring
+    poses = gt[:6].copy()
+    truth = se2.relative(gt[4], gt[5])
+    guess = truth + np.array([0.15, -0.1, np.radians(4.0)])
+    junk = points.copy()
+    junk[5] = np.random.default_rng(0).uniform(-6, 6, size=junk[5].shape)
+    rel = _sequential(junk, valid, poses, 5, guess, 5, "plane", (0.1, 5.0), 4.0, 0.1, 0.03)
+    np.testing.assert_allclose(rel, guess)
+    rel = _sequential(points, valid, poses, 5, guess, 5, "plane", (0.1, 5.0), 4.0, 0.1, 0.03)
+    assert np.hypot(*(rel[:2] - truth[:2])) < 0.05
