@@ -46,6 +46,9 @@ POINT_SIGMA = 0.03
 # best match nearer the odometry (a wheel slip: the near ones do not fit)
 ODOMETRY_GATE = 6.0
 FAR_MARGIN = 0.15
+# a sequential match fits when it puts this much of the scan on the submap; where none does, the
+# odometry motion itself is a candidate too
+FITS = 0.5
 
 
 def data_scale(points, valid) -> float:
@@ -178,8 +181,9 @@ def _sequential(pts, valid, poses, n, guess, submap, method, odometry_sigma, rad
     """The motion from keyframe n-1 to n, one of these matches started from the odometry ``guess``:
     (1) point-to-line against the submap of recent keyframes, with the odometry prior;
     (2) point-to-point against the previous scan alone; (3) coarse-to-fine point-to-point against
-    the submap (recovers odometry jumps of a metre, e.g. wheel slip); with odometry also (4) the
-    odometry motion as it is (for a scan that fits nowhere, e.g. a person in front of the laser).
+    the submap (recovers odometry jumps of a metre, e.g. wheel slip); with odometry, where none of
+    these puts ``FITS`` of the scan on the submap, also (4) the odometry motion as it is (a scan
+    that fits nowhere, e.g. a person in front of the laser).
     The one that puts most of the scan within ``inlier_distance`` of the submap wins, with the
     odometry's say in ``_pick``."""
     src = pts[n][valid[n]]
@@ -191,11 +195,12 @@ def _sequential(pts, valid, poses, n, guess, submap, method, odometry_sigma, rad
     hypotheses = [first, icp_2d(src, pts[n - 1][valid[n - 1]], init=guess, method="point")[0]]
     coarse, _ = icp_2d(src, target, init=guess, method="point", max_correspondence_distance=radius / 4, trim=None)
     hypotheses.append(icp_2d(src, target, init=coarse, method=method, prior_sigma=None)[0])
-    if odometry_sigma is not None:  # (4) the odometry itself, for a scan no match fits
-        hypotheses.append(np.asarray(guess, dtype=np.float64).copy())
     tree = cKDTree(target)
-    scores = np.array([_overlap(src, tree, h, inlier_distance) for h in hypotheses])
-    return _pick(hypotheses, scores, guess, odometry_sigma)
+    scores = [_overlap(src, tree, h, inlier_distance) for h in hypotheses]
+    if odometry_sigma is not None and max(scores) < FITS:  # (4) the odometry itself, for a scan no match fits
+        hypotheses.append(np.asarray(guess, dtype=np.float64).copy())
+        scores.append(_overlap(src, tree, hypotheses[-1], inlier_distance))
+    return _pick(hypotheses, np.array(scores), guess, odometry_sigma)
 
 
 def _pick(hypotheses, scores, guess, odometry_sigma):
