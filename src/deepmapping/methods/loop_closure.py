@@ -207,10 +207,11 @@ def _pick(hypotheses, scores, guess, odometry_sigma):
     """The sequential match to keep: the one that puts most of the scan on the submap (``scores``);
     with odometry, one further than ``ODOMETRY_GATE`` standard deviations from the odometry
     ``guess`` only where it beats the best match nearer the odometry by ``FAR_MARGIN`` (a wheel
-    slip: the near ones do not fit; the odometry itself is one of the near ones). Measured on logs
-    with simulated odometry (docs/logs.md): the most overlap alone had taken a symmetric room
-    matched 53 deg from the odometry (0.81 against 0.68 for the right match), or a 3.4 m / 55 deg
-    jump on a scan that fit nowhere (0.16 against 0.12), and the loops behind them never closed."""
+    slip: the near ones do not fit; where ``_sequential`` adds it, the odometry is a near one).
+    Measured on logs with simulated odometry (docs/logs.md): the most overlap alone had taken a
+    symmetric room matched 53 deg from the odometry (0.81 against 0.68 for the right match), or a
+    3.4 m / 55 deg jump on a scan that fit nowhere (0.16 against 0.12), and the loops behind them
+    never closed."""
     best = int(np.argmax(scores))  # ties: the first
     if odometry_sigma is None:
         return hypotheses[best]
