@@ -67,8 +67,11 @@ def path_timestamps(poses: np.ndarray, speed: float = 0.5) -> np.ndarray:
     that none repeat): for a log whose own timestamps cannot tell its scans apart (belgioioso's
     are printed to six digits)."""
     poses = np.asarray(poses, dtype=np.float64)
-    length = np.hypot(*np.diff(poses[:, :2], axis=0).T)
-    return np.concatenate([[0.0], np.cumsum(length)]) / speed + 0.01 * np.arange(len(poses))
+    return np.concatenate([[0.0], np.cumsum(_step_lengths(poses))]) / speed + 0.01 * np.arange(len(poses))
+
+
+def _step_lengths(poses: np.ndarray) -> np.ndarray:
+    return np.hypot(*np.diff(poses[:, :2], axis=0).T)
 
 
 def simulated_log(corrected: str | Path, folder: str | Path, seed: int = 0,
@@ -88,7 +91,7 @@ def simulated_log(corrected: str | Path, folder: str | Path, seed: int = 0,
     log_path, relations_path = folder / f"{site}.clf", folder / f"{site}.relations"
     write_with_poses(corrected, log_path, odometry, stamps)
     write_relations(relations_path, relations_from_corrected(corrected, log_path))
-    summary = {"scans": log.num_scans, "path_m": float(np.hypot(*np.diff(log.poses[:, :2], axis=0).T).sum()),
+    summary = {"scans": log.num_scans, "path_m": float(_step_lengths(log.poses).sum()),
                "end_error_m": float(np.hypot(*(odometry[-1, :2] - log.poses[-1, :2]))),
                "own_timestamps": stamps is None}
     return log_path, relations_path, summary
