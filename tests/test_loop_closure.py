@@ -410,3 +410,34 @@ def test_a_scan_that_fits_nowhere_keeps_its_odometry(ring):
     np.testing.assert_allclose(rel, guess)
     rel = _sequential(points, valid, poses, 5, guess, 5, "plane", (0.1, 5.0), 4.0, 0.1, 0.03)
     assert np.hypot(*(rel[:2] - truth[:2])) < 0.05
+
+
+@pytest.mark.parametrize("offset", [(0.3, -0.2, 40.0), (-0.4, 0.0, -25.0), (0.0, 0.45, 10.0)])
+def test_correlative_search_finds_the_pose_within_its_window(ring, offset):
+    """The correlative search recovers the true motion between two keyframes from a guess up to 45 deg
+    and 0.5 m off, to within its grid (half the inlier distance, 1 degree)."""
+    from deepmapping.methods.loop_closure import _recent, correlative_search
+
+    points, valid, gt, _ = ring
+    truth = se2.relative(gt[22], gt[23])
+    guess = truth + np.array([offset[0], offset[1], np.radians(offset[2])])
+    target = _recent(points, valid, gt, 22, 5)
+    pose = correlative_search(points[23][valid[23]], target, guess, 45.0, 0.5, 0.1)
+    assert np.hypot(*(pose[:2] - truth[:2])) <= 0.08 and abs(se2.wrap_angle(pose[2] - truth[2])) <= np.radians(1.5)
+
+
+def test_a_turn_icp_cannot_recover_is_found_by_the_correlative_search(ring, monkeypatch):
+    """With odometry, where no ICP match fits (here ICP is made to stay where it starts), the sequential
+    match takes the correlative search's pose around the odometry: an odometry turn 35 deg off (the
+    simulated logs' turns in place) is corrected; without odometry there is no such search."""
+    import deepmapping.methods.loop_closure as lc
+
+    monkeypatch.setattr(lc, "icp_2d", lambda src, tgt, init, **kw: (np.asarray(init, dtype=np.float64), {}))
+    points, valid, gt, _ = ring
+    poses = gt[:9].copy()
+    truth = se2.relative(gt[7], gt[8])
+    guess = truth + np.array([0.1, 0.05, np.radians(35.0)])
+    rel = lc._sequential(points, valid, poses, 8, guess, 5, "plane", (0.1, 5.0), 4.0, 0.1, 0.03)
+    assert np.hypot(*(rel[:2] - truth[:2])) <= 0.08 and abs(se2.wrap_angle(rel[2] - truth[2])) <= np.radians(1.5)
+    rel = lc._sequential(points, valid, poses, 8, guess, 5, "plane", None, 4.0, 0.1, 0.03)
+    np.testing.assert_allclose(rel, guess)
