@@ -25,12 +25,12 @@ from __future__ import annotations
 from typing import Callable
 
 import numpy as np
-from scipy.ndimage import distance_transform_edt
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
 from deepmapping.geometry import se2
+from deepmapping.geometry.distance_field import DistanceField2D
 from deepmapping.geometry.normals import pca_normals
 from deepmapping.methods.icp import icp_2d
 from deepmapping.methods.pose_graph_2d import Edge, optimize_pose_graph
@@ -224,20 +224,17 @@ def correlative_search(src, target, center, degrees, shift, inlier_distance) -> 
     started from the odometry, fit nowhere (a turn in place whose odometry is 30 deg off)."""
     cell = inlier_distance / 2
     lo = target.min(axis=0) - inlier_distance
-    shape = np.ceil((target.max(axis=0) + inlier_distance - lo) / cell).astype(int) + 1
-    empty = np.ones(shape, dtype=bool)
-    hit = np.floor((target - lo) / cell).astype(int)
-    empty[hit[:, 0], hit[:, 1]] = False
-    near = np.pad(distance_transform_edt(empty) * cell <= inlier_distance, ((0, 1), (0, 1)))  # pad: "outside"
+    size = int(np.ceil(np.max(target.max(axis=0) + inlier_distance - lo) / cell)) + 1
+    field = DistanceField2D(target, half_extent=size * cell / 2, size=size, center=lo + size * cell / 2)
+    # the field's distances are multiples of sqrt(integer) cells, stored as float32: a tolerance far
+    # below one cell keeps a point exactly inlier_distance away within it
+    within = inlier_distance * (1 + 1e-6)
     steps = np.arange(-shift, shift + 1e-9, cell)
     shifts = np.stack(np.meshgrid(steps, steps, indexing="ij"), axis=-1).reshape(-1, 1, 2)
     best, pose = -1.0, np.asarray(center, dtype=np.float64).copy()
     for angle in center[2] + np.radians(np.arange(-degrees, degrees + 1e-9, 1.0)):
         moved = se2.transform_points(np.array([*center[:2], angle]), src)
-        cells = np.floor((moved + shifts - lo) / cell).astype(int)
-        outside = (cells < 0).any(axis=2) | (cells[..., 0] >= shape[0]) | (cells[..., 1] >= shape[1])
-        cells[outside] = -1  # the padding row/column: not near
-        score = near[cells[..., 0], cells[..., 1]].mean(axis=1)
+        score = (field.lookup(moved + shifts) <= within).mean(axis=1)
         k = int(np.argmax(score))
         if score[k] > best:
             best, pose = float(score[k]), np.array([*(center[:2] + shifts[k, 0]), angle])
