@@ -441,3 +441,37 @@ def test_a_turn_icp_cannot_recover_is_found_by_the_correlative_search(ring, monk
     assert np.hypot(*(rel[:2] - truth[:2])) <= 0.08 and abs(se2.wrap_angle(rel[2] - truth[2])) <= np.radians(1.5)
     rel = lc._sequential(points, valid, poses, 8, guess, 5, "plane", None, 4.0, 0.1, 0.03)
     np.testing.assert_allclose(rel, guess)
+
+
+@pytest.mark.parametrize("apart", [0.0, 10.0])
+def test_matches_that_disagree_bring_the_correlative_search(ring, monkeypatch, apart):
+    """Where the sequential matches fit (here every match counts as fitting) but two of them are 10 deg
+    apart, the correlative search runs and its pose, which fits clearly better, is taken: an odometry
+    turn 30 deg off is corrected. Where they agree, the search does not run and the match stays."""
+    import deepmapping.methods.loop_closure as lc
+
+    monkeypatch.setattr(lc, "FITS", 0.0)
+    # ICP stays where it starts, except that the match against the previous scan alone (the only
+    # point-to-point match without ``trim=None``) turns by ``apart`` degrees
+    monkeypatch.setattr(lc, "icp_2d", lambda src, tgt, init, **kw: (
+        np.asarray(init, dtype=np.float64) + [0, 0, np.radians(apart if kw.get("method") == "point" and "trim" not in kw
+                                                              else 0.0)], {}))
+    points, valid, gt, _ = ring
+    poses = gt[:9].copy()
+    truth = se2.relative(gt[7], gt[8])
+    guess = truth + np.array([0.05, 0.05, np.radians(30.0)])
+    rel = lc._sequential(points, valid, poses, 8, guess, 5, "plane", (0.1, 5.0), 4.0, 0.1, 0.03)
+    if apart:
+        assert np.hypot(*(rel[:2] - truth[:2])) <= 0.08 and abs(se2.wrap_angle(rel[2] - truth[2])) <= np.radians(1.5)
+    else:
+        np.testing.assert_allclose(rel, guess)
+
+
+def test_disagreement_is_a_turn_or_a_shift_between_two_matches():
+    from deepmapping.methods.loop_closure import _disagree_with_each_other
+
+    base = np.array([1.0, 0.5, 0.3])
+    assert not _disagree_with_each_other([base, base + [0.1, -0.1, np.radians(2.0)], base], 0.1)
+    assert _disagree_with_each_other([base, base + [0.0, 0.0, np.radians(4.0)], base], 0.1)
+    assert _disagree_with_each_other([base, base, base + [0.0, 0.35, 0.0]], 0.1)
+    assert not _disagree_with_each_other([np.array([0, 0, np.pi - 0.01]), np.array([0, 0, -np.pi + 0.01])], 0.1)
