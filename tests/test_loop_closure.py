@@ -380,8 +380,10 @@ def test_icp_does_not_match_the_two_faces_of_a_wall():
 def test_pick_keeps_the_match_near_the_odometry_unless_a_far_one_fits_clearly_better():
     """The sequential match's choice (loop_closure._pick), odometry sigma (0.1 m, 5 deg): a far match
     with a little more overlap loses to a near one (a symmetric room matched 53 deg off; a scan that
-    fits nowhere); a far one that fits clearly better wins (a wheel slip), as does the best when none
-    is near; without odometry the best overlap wins."""
+    fits nowhere); a far one that fits clearly better wins (a wheel slip); when none is near, of those
+    that fit about as well as the best the one nearest the odometry wins (a turn 36 deg off its odometry
+    against a match 2.7 m away), unless another fits clearly better; without odometry the best
+    overlap wins."""
     from deepmapping.methods.loop_closure import _pick
 
     guess, sigma = np.array([0.5, 0.0, 0.2]), (0.1, 5.0)
@@ -390,7 +392,10 @@ def test_pick_keeps_the_match_near_the_odometry_unless_a_far_one_fits_clearly_be
     assert np.array_equal(_pick([near, far], np.array([0.68, 0.81]), guess, sigma), near)
     assert np.array_equal(_pick([far, near], np.array([0.16, 0.12]), guess, sigma), near)
     assert np.array_equal(_pick([near, slip], np.array([0.60, 0.90]), guess, sigma), slip)
-    assert np.array_equal(_pick([far, slip], np.array([0.16, 0.12]), guess, sigma), far)
+    turn, jump = guess + [0.02, 0.0, np.radians(36.0)], guess + [2.7, 0.0, 0.0]
+    assert np.array_equal(_pick([jump, turn], np.array([0.63, 0.60]), guess, sigma), turn)
+    assert np.array_equal(_pick([jump, far, slip], np.array([0.16, 0.12, 0.14]), guess, sigma), slip)
+    assert np.array_equal(_pick([turn, jump], np.array([0.60, 0.80]), guess, sigma), jump)
     assert np.array_equal(_pick([near, far], np.array([0.68, 0.81]), guess, None), far)
 
 
