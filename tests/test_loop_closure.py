@@ -480,3 +480,100 @@ def test_disagreement_is_a_turn_or_a_shift_between_two_matches():
     assert _disagree_with_each_other([base, base + [0.0, 0.0, np.radians(4.0)], base], 0.1)
     assert _disagree_with_each_other([base, base, base + [0.0, 0.35, 0.0]], 0.1)
     assert not _disagree_with_each_other([np.array([0, 0, np.pi - 0.01]), np.array([0, 0, -np.pi + 0.01])], 0.1)
+
+
+def test_global_match_finds_the_pose_at_any_heading(ring):
+    """A revisit matched with no guess: keyframe 75 (the second lap) against keyframe 3's submap, the
+    sensor turned by up to 180 deg and moved by up to half a metre, is found to within 5 cm / 1.5 deg."""
+    from deepmapping.methods.loop_closure import global_match, keyframe_submap
+
+    points, valid, gt, _ = ring
+    target = keyframe_submap(points, valid, gt, 3, 2)
+    truth = se2.relative(gt[3], gt[75])
+    for turn in (0.0, 100.0, -170.0):
+        moved = se2.compose(gt[75], [0.0, 0.0, np.radians(turn)])
+        src = se2.transform_points(se2.relative(moved, gt[75]), points[75][valid[75]])  # seen from moved
+        pose = global_match(src, target, 1.0, 0.1)
+        expected = se2.relative(gt[3], moved)
+        assert np.hypot(*(pose[:2] - expected[:2])) < 0.05 and abs(se2.wrap_angle(pose[2] - expected[2])) < np.radians(1.5)
+    assert np.hypot(*truth[:2]) < 0.5
+
+
+def test_place_descriptor_is_nearer_for_the_same_place_than_for_another(ring):
+    """The descriptor is blind to heading: the same place seen on the second lap is nearer (L1) than
+    any keyframe on the far side of the ring."""
+    from deepmapping.methods.loop_closure import place_descriptor
+
+    points, valid, gt, _ = ring
+    d = [place_descriptor(points[k][valid[k]], 1.0) for k in range(len(points))]
+    here = np.abs(d[75] - d[3]).sum()
+    turned = place_descriptor(se2.transform_points([0, 0, 2.0], points[75][valid[75]]), 1.0)
+    np.testing.assert_allclose(turned, d[75], atol=1e-9)
+    far = [np.abs(d[75] - d[k]).sum() for k in range(30, 45)]  # the ring's far side
+    assert here < min(far), (here, min(far))
+
+
+def test_places_recognized_close_a_loop_drift_put_out_of_reach(ring, monkeypatch):
+    """The sequential matches are held at an odometry that turned 25 deg too far on one step: on the
+    second lap the estimate puts the start metres away, out of the candidates' radius, and no loop is
+    closed; with place recognition, agreeing revisits close it (each right to 10 cm) and the ATE falls
+    by over half. Without the turn bound, the square ring's other sides look alike (a corner is a
+    corner) and wrong closures get in."""
+    import deepmapping.methods.loop_closure as lc
+
+    monkeypatch.setattr(lc, "_sequential", lambda pts, valid, poses, n, guess, *a: np.asarray(guess, dtype=np.float64))
+    points, valid, gt, _ = ring
+    rel = se2.relative(gt[:-1], gt[1:])
+    rel[60, 2] += np.radians(25.0)
+    odom = se2.chain(rel, gt[0])
+    args = dict(min_gap=20, radius=1.0)
+    plain, plain_edges = close_loops(points, valid, odom, **args)
+    assert not [e for e in plain_edges if e.j - e.i > 1]
+
+    def wrong(edges):
+        return [e for e in edges if e.j - e.i > 1 and np.hypot(*(e.z[:2] - se2.relative(gt[e.i], gt[e.j])[:2])) > 0.1]
+
+    found, edges = close_loops(points, valid, odom, recognize_places=True, **args)
+    loops = [e for e in edges if e.j - e.i > 1]
+    assert len(loops) >= 3 and not wrong(edges) and ate(found, gt) < 0.5 * ate(plain, gt), \
+        (len(loops), wrong(edges), ate(found, gt), ate(plain, gt))
+    monkeypatch.setattr(lc, "RECOGNIZE_TURN_DRIFT", 10.0)
+    _, edges = close_loops(points, valid, odom, recognize_places=True, **args)
+    assert wrong(edges)
+
+
+def test_recognized_places_agree_when_the_old_and_new_keyframes_move_alike():
+    """Two place-recognition closures agree where the second new keyframe, seen from the first through
+    the new poses and through the old place, is the same; a look-alike three metres on does not."""
+    from deepmapping.methods.loop_closure import _same_place
+
+    poses = np.array([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [9.0, 4.0, 0.4], [9.0 + 0.5 * np.cos(0.4), 4.0 + 0.5 * np.sin(0.4), 0.4]])
+    z = np.array([0.1, -0.05, 0.02])  # each new keyframe as seen from its old one
+    a, b = Edge(0, 2, z), Edge(1, 3, z)
+    assert _same_place(poses, a, b, 0.3)
+    assert not _same_place(poses, a, Edge(1, 3, z + [3.0, 0.0, 0.0]), 0.3)
+    assert not _same_place(poses, a, Edge(1, 3, z + [0.0, 0.0, np.radians(5.0)]), 0.3)
+
+
+def test_distance_field_within_is_lookup_below_a_distance():
+    """``DistanceField2D.within`` (the correlative searches' fast path) answers as ``lookup(q) <= d``,
+    inside the grid, on its border cells and outside it."""
+    from deepmapping.geometry.distance_field import DistanceField2D
+
+    rng = np.random.default_rng(0)
+    field = DistanceField2D(rng.uniform(-1, 1, (200, 2)), half_extent=1.2, size=96)
+    queries = np.concatenate([rng.uniform(-2, 2, (20000, 2)), rng.uniform(-1.21, -1.19, (2000, 2))])
+    for d in (0.01, 0.05, 0.1, 0.5):
+        np.testing.assert_array_equal(field.within(queries, d), field.lookup(queries) <= d)
+
+
+def test_place_recognition_auto_is_on_for_logs_with_odometry_only():
+    from deepmapping.config import LoopClosureConfig
+    from deepmapping.methods.registry import loop_closure_settings
+
+    auto = LoopClosureConfig()
+    assert loop_closure_settings(auto, 1.0, odometry=True)["recognize_places"] is True
+    assert loop_closure_settings(auto, 1.0, odometry=False)["recognize_places"] is False
+    forced = LoopClosureConfig(recognize_places=True)
+    assert loop_closure_settings(forced, 1.0, odometry=False)["recognize_places"] is True
+    assert loop_closure_settings(LoopClosureConfig(recognize_places=False), 1.0, odometry=True)["recognize_places"] is False

@@ -310,6 +310,11 @@ class LoopClosureConfig(_Section):
     # sensors see the surface from the same side: a wall seen from both rooms would otherwise pull the
     # match by its thickness towards its other face
     refine_closures: bool = True
+    # a keyframe that closed no loop near its estimate also looks for its place among all earlier
+    # keyframes (a descriptor, then a match at any heading), kept where three neighbouring keyframes
+    # agree: loops whose return drift has put metres off (methods.loop_closure._recognize).
+    # "auto": on for logs with odometry (where it was measured), off for scans without
+    recognize_places: bool | Literal["auto"] = "auto"
 
 
 class WarmStartConfig(_Section):

@@ -53,6 +53,18 @@ class DistanceField2D:
         outside = np.linalg.norm(q - np.clip(q, self.lo, hi), axis=-1)
         return d + outside
 
+    def within(self, queries, distance: float) -> np.ndarray:
+        """``lookup(queries) <= distance``, faster: the distance to the border is computed only for
+        the queries outside the grid (a correlative search scores millions of poses)."""
+        q = np.asarray(queries, dtype=np.float64)
+        raw = np.floor((q - self.lo) / self.cell).astype(np.int64)
+        far = (raw.view(np.uint64) >= self.size).any(axis=-1)  # a negative index wraps to a huge one
+        idx = np.minimum(raw.view(np.uint64), self.size - 1).view(np.int64)
+        out = self.grid[idx[..., 1], idx[..., 0]].astype(np.float64) <= np.float64(distance)
+        if far.any():
+            out[far] = self.lookup(q[far]) <= np.float64(distance)
+        return out
+
 
 def clean_points_2d(points, name: str) -> np.ndarray:
     """(N, 2) float64 without non-finite rows; ValueError naming ``name`` if fewer than 3 remain."""

@@ -16,7 +16,10 @@ two allows (``max_drift``: repeated rooms); a kept closure is refined over the p
 see from the same side (``refine_closures``: not the two faces of one wall); each kept loop
 closure that the poses do not already satisfy triggers a pose-graph optimization
 (:mod:`deepmapping.methods.pose_graph_2d`, whose Cauchy kernel down-weights a wrong one that got
-through), so drift is removed before the next keyframe looks for its neighbours. Lengths follow
+through), so drift is removed before the next keyframe looks for its neighbours. With
+``recognize_places``, a keyframe that closed no loop also looks for its place among all earlier
+keyframes, wherever the estimate puts them (``_recognize``: a descriptor, a match at any heading, a
+bound on the turn it asks for, and three neighbouring keyframes that agree). Lengths follow
 the scans' ranges (``scale``, :func:`data_scale`). The result warm-starts DeepMapping.
 """
 
@@ -35,7 +38,7 @@ from deepmapping.geometry.normals import pca_normals
 from deepmapping.methods.icp import icp_2d
 from deepmapping.methods.pose_graph_2d import Edge, optimize_pose_graph
 
-__all__ = ["close_loops", "correlative_search", "data_scale"]
+__all__ = ["close_loops", "correlative_search", "data_scale", "global_match", "place_descriptor"]
 
 # the median return range the lengths of close_loops are given for (metres: the indoor CARMEN logs
 # intel, fr079 and mit-csail, 1.96-2.08 m)
@@ -60,6 +63,25 @@ SEARCH_SHIFT = 0.125
 # the true motion fits 0.79; a corridor slid 1.4 m at 0.58 against 0.72)
 AGREE_DEGREES = 3.0
 CLEAR_MARGIN = 0.05
+# place recognition (``recognize_places``): a keyframe that closed no loop near its estimate is
+# compared, by a descriptor of its recent scans (histograms of return ranges and of distances between
+# returns, both blind to heading), with every earlier keyframe; the RECOGNIZE_CANDIDATES most alike
+# are matched wherever they are (a correlative search over every heading and RECOGNIZE_SHIFT x radius,
+# then ICP), and a match that passes the closures' tests waits until RECOGNIZE_CONFIRM of them, from
+# keyframes at most RECOGNIZE_WINDOW apart, say the same thing of where the old place is
+RECOGNIZE_CANDIDATES = 2
+RECOGNIZE_SHIFT = 0.25
+RECOGNIZE_CONFIRM = 3
+RECOGNIZE_WINDOW = 10
+RECOGNIZE_EVERY = 2  # keyframes: a revisit lasts several; matching every other one halves the time
+# ... and where it turns the keyframe by no more than RECOGNIZE_TURN_DRIFT of the least turning of any
+# path between the two through the pose graph, plus RECOGNIZE_MIN_TURN deg: heading drifts with
+# turning (simulated odometry: 23 deg lost over turns in place of 360 deg in all), while a look-alike
+# place elsewhere (a square ring's other side) needs the turn between the two places
+RECOGNIZE_TURN_DRIFT = 0.15
+RECOGNIZE_MIN_TURN = 5.0
+RANGE_BINS = np.linspace(0.0, 6.0, 25)  # at scale 1 (metres)
+PAIR_BINS = np.linspace(0.0, 8.0, 33)
 
 
 def data_scale(points, valid) -> float:
@@ -90,8 +112,8 @@ def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float =
                 sequential_submap: int = 5, sequential_method: str = "plane",
                 odometry_sigma: tuple[float, float] | None = (0.1, 5.0), min_constraint: float = 0.2,
                 max_free_conflict: float = 0.05, max_drift: float = 0.2, refine_closures: bool = True,
-                constant_velocity: bool = False, scale: float = 1.0, edge_sigma: float = 0.05,
-                progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, list[Edge]]:
+                constant_velocity: bool = False, recognize_places: bool = False, scale: float = 1.0,
+                edge_sigma: float = 0.05, progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, list[Edge]]:
     """Poses (K, 3) after loop closing, and the pose-graph edges (sequential and loop closures).
 
     points (K, N, 2) and valid (K, N) in metres; init_poses (K, 3): odometry (or any guess),
@@ -113,6 +135,9 @@ def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float =
     for the second keyframe); a straight corridor then keeps the robot's pace, where from the identity
     the match slides (the paper's simulated trajectories: 7 of 75 over 1 px from the truth, 5 with it;
     but a 4096-scan one 2.15 -> 9.98 px: off by default, ``loop.constant_velocity``).
+    ``recognize_places``: a keyframe that closed no loop also looks for the place among all earlier
+    keyframes, however far the estimate puts them (drift of metres after turns in place), see
+    ``_recognize``; such closures are kept only where RECOGNIZE_CONFIRM neighbouring keyframes agree.
     ``scale`` multiplies every length (``radius``, ``inlier_distance``, the odometry's
     metres, ``edge_sigma``, the pose graph's translation standard deviation, and the point-to-line
     sigma against the odometry prior), for scans whose ranges are not those of the indoor logs the
@@ -128,6 +153,7 @@ def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float =
     poses = init[:1].copy()
     edges: list[Edge] = []
     rel = None  # the last sequential match
+    descriptors, pending = [], []  # place recognition: each keyframe's descriptor, unconfirmed matches
     for n in range(1, k):
         guess, prior = se2.relative(init[n - 1], init[n]), odometry_sigma
         if constant_velocity:
@@ -148,20 +174,36 @@ def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float =
         edges += closing
         if any(_disagrees(poses, e, inlier_distance / 2) for e in closing):
             poses = optimize_pose_graph(poses, edges)
+        if recognize_places:
+            if n == 1:
+                descriptors.append(place_descriptor(_recent(pts, valid, poses, 0, sequential_submap), scale))
+            descriptors.append(place_descriptor(_recent(pts, valid, poses, n, sequential_submap), scale))
+            if not closing and n >= min_gap and n % RECOGNIZE_EVERY == 0:
+                confirmed = _recognize(pts, valid, poses, edges, n, descriptors, pending, min_gap, submap_half_width,
+                                       min_overlap, inlier_distance, min_constraint, max_free_conflict, edge_sigma,
+                                       radius)
+                if confirmed:
+                    # a recognized place can be metres from where the graph had it: least squares first, over
+                    # the edges the poses hold and the new ones (the robust kernel would hardly feel so large
+                    # a residual, and an overruled closure should not pull), then every edge with the kernel
+                    held = _held(edges, poses, 3 * inlier_distance) + confirmed
+                    edges += confirmed
+                    poses = optimize_pose_graph(optimize_pose_graph(poses, held, robust_scale=1e6), edges)
         if progress is not None:
             progress(n, k - 1)
     return optimize_pose_graph(poses, edges), edges
 
 
-def _graph_distances(edges, n, targets, limit) -> dict:
+def _graph_distances(edges, n, targets, limit, turns=False) -> dict:
     """The length of the shortest path from keyframe n to each of ``targets`` through the pose graph
     (edge length = its translation; a loop closure is a short cut), at most ``limit``: how far
-    drift can have carried n from each of them."""
+    drift can have carried n from each of them. With ``turns``, an edge's length is its rotation
+    (radians): how far heading drift can have turned n."""
     if not targets:
         return {}
     ij = np.array([(e.i, e.j) for e in edges])
     z = np.array([e.z for e in edges])
-    w = np.maximum(np.hypot(z[:, 0], z[:, 1]), 1e-12)  # a zero would be no edge at all
+    w = np.maximum(np.abs(se2.wrap_angle(z[:, 2])) if turns else np.hypot(z[:, 0], z[:, 1]), 1e-12)  # 0: no edge
     graph = coo_matrix((w, (ij[:, 0], ij[:, 1])), shape=(n + 1, n + 1)).tocsr()
     dist = dijkstra(graph, directed=False, indices=n, limit=limit)
     return {j: float(min(dist[j], limit)) for j in targets}
@@ -186,6 +228,112 @@ def _disagrees(poses, edge, distance) -> bool:
     last optimization takes every edge)."""
     r = se2.relative(poses[edge.i], poses[edge.j]) - edge.z
     return bool(np.hypot(r[0], r[1]) > distance or abs(se2.wrap_angle(r[2])) > np.radians(1.0))
+
+
+def place_descriptor(points, scale) -> np.ndarray:
+    """A keyframe's place as heading-blind histograms (each summing to 1): of its returns' ranges and
+    of the distances between returns (a subsample of 200), ``points`` (N, 2) in the keyframe's frame,
+    lengths over ``scale``. Two visits of a place from about the same spot have alike histograms
+    wherever drift has put them."""
+    r = np.hypot(*points.T) / scale
+    sub = points[:: max(len(points) // 200, 1)] / scale
+    d = np.hypot(*(sub[:, None] - sub[None]).reshape(-1, 2).T)
+    h = [np.histogram(r, RANGE_BINS)[0], np.histogram(d[d > 0], PAIR_BINS)[0]]
+    return np.concatenate([x / max(x.sum(), 1) for x in h])
+
+
+def _recognize(pts, valid, poses, edges, n, descriptors, pending, min_gap, half_width, min_overlap, inlier_distance,
+               min_constraint, max_free_conflict, edge_sigma, radius) -> list:
+    """Loop closures for keyframe n from place recognition: the RECOGNIZE_CANDIDATES earlier keyframes
+    (at least ``min_gap`` back) whose descriptors are nearest n's are matched globally
+    (``global_match``) and tested as any closure (overlap, constraint, free space) and for the turn it
+    asks of the keyframe (``_turn_allowed``); a match that passes
+    joins ``pending`` and is returned, with those that confirm it, once RECOGNIZE_CONFIRM matches of
+    keyframes within RECOGNIZE_WINDOW of each other agree on where the old place lies (a single look-alike
+    room is not enough: on simulated odometry, a corridor matched 180 deg about at 0.75-0.83 overlap)."""
+    old = np.arange(n - min_gap + 1)
+    desc = np.asarray(descriptors)
+    nearest = old[np.argsort(np.abs(desc[old] - desc[n]).sum(axis=1), kind="stable")[:RECOGNIZE_CANDIDATES]]
+    pending[:] = [e for e in pending if n - e.j <= RECOGNIZE_WINDOW]
+    src = pts[n][valid[n]]
+    for j in nearest:
+        target, origins = keyframe_submap(pts, valid, poses, int(j), half_width, origins=True)
+        rel = global_match(src, target, RECOGNIZE_SHIFT * radius, inlier_distance)
+        tree = cKDTree(target)
+        if (_overlap(src, tree, rel, inlier_distance) < min_overlap
+                or _constraint(src, target, tree, rel, inlier_distance) < min_constraint
+                or (max_free_conflict < 1 and _closure_conflict(pts, valid, poses, int(j), n, rel, half_width,
+                                                                2 * inlier_distance) > max_free_conflict)):
+            continue
+        rel, _ = icp_2d(src, target, init=rel, method="plane", max_correspondence_distance=inlier_distance,
+                        trim=None, target_origins=origins)
+        if not _turn_allowed(poses, edges, int(j), n, rel, inlier_distance):
+            continue
+        edge = Edge(int(j), n, rel, sigma_t=edge_sigma)
+        agree = [e for e in pending if _same_place(poses, e, edge, 3 * inlier_distance)]
+        if len({e.j for e in agree} | {n}) >= RECOGNIZE_CONFIRM:  # from as many keyframes
+            pending[:] = [e for e in pending if e not in agree]
+            return agree + [edge]
+        pending.append(edge)
+    return []
+
+
+def _turn_allowed(poses, edges, j, n, rel, inlier_distance) -> bool:
+    """Whether a recognized place (keyframe n at ``rel`` from j) turns n by no more than heading drift
+    can explain: RECOGNIZE_TURN_DRIFT of the least total turn of a path from j to n through the pose
+    graph's held edges, plus RECOGNIZE_MIN_TURN degrees."""
+    turn = abs(se2.wrap_angle(se2.relative(poses[n], se2.compose(poses[j], rel))[2]))
+    path = _graph_distances(_held(edges, poses, 3 * inlier_distance), n, [j], 2 * np.pi * len(poses), turns=True)[j]
+    return bool(turn <= RECOGNIZE_TURN_DRIFT * path + np.radians(RECOGNIZE_MIN_TURN))
+
+
+def _same_place(poses, a, b, distance) -> bool:
+    """Whether two place-recognition closures (old keyframe i, new keyframe j) agree: keyframe b.j seen
+    from a.j through the new keyframes' own poses and through the old place (a.z, the old keyframes'
+    poses, b.z) is the same within ``distance`` and 2 deg, and the two old keyframes are near in time."""
+    if abs(a.i - b.i) > 2 * RECOGNIZE_WINDOW:
+        return False
+    direct = se2.relative(poses[a.j], poses[b.j])
+    via = se2.compose(se2.compose(se2.inverse(a.z), se2.relative(poses[a.i], poses[b.i])), b.z)
+    r = direct - via
+    return bool(np.hypot(r[0], r[1]) <= distance and abs(se2.wrap_angle(r[2])) <= np.radians(2.0))
+
+
+def global_match(src, target, shift, inlier_distance) -> np.ndarray:
+    """The pose of ``src`` on ``target`` (both (N, 2)) at any heading and within ``shift`` of the
+    target's origin: a coarse correlative search (4-degree steps, three inlier distances, at most 60
+    points), a fine one around its best (1 degree, one inlier distance), then point-to-point ICP."""
+    coarse = _coarse_search(src[:: max(len(src) // 60, 1)], target, shift, 3 * inlier_distance, 4.0)
+    fine = correlative_search(src, target, coarse, 4.0, 3 * inlier_distance, inlier_distance)
+    return icp_2d(src, target, init=fine, method="point", max_correspondence_distance=3 * inlier_distance,
+                  trim=None)[0]
+
+
+def _coarse_search(src, target, shift, tolerance, step_degrees) -> np.ndarray:
+    """``correlative_search`` about the origin at every heading, cheaper: the shifts are whole cells of
+    the target's grid (``tolerance`` / 2), so each heading's points are put in cells once and every
+    shift is an integer offset of those cells into a mask of the cells within ``tolerance`` of the
+    target (outside the grid: none)."""
+    cell = tolerance / 2
+    lo = target.min(axis=0) - tolerance
+    size = int(np.ceil(np.max(target.max(axis=0) + tolerance - lo) / cell)) + 1
+    field = DistanceField2D(target, half_extent=size * cell / 2, size=size, center=lo + size * cell / 2)
+    reach = int(np.floor(shift / cell + 1e-9))
+    pad = reach + 1
+    mask = np.zeros((size + 2 * pad, size + 2 * pad), dtype=bool)
+    mask[pad:-pad, pad:-pad] = field.grid <= np.float64(tolerance * (1 + 1e-6))
+    steps = np.arange(-reach, reach + 1)
+    offsets = np.stack(np.meshgrid(steps, steps, indexing="ij"), axis=-1).reshape(-1, 1, 2)
+    best, pose = -1.0, np.zeros(3)
+    for angle in np.radians(np.arange(-180.0, 180.0, step_degrees)):
+        cells = np.floor((se2.transform_points(np.array([0.0, 0.0, angle]), src) - lo) / cell).astype(np.int64)
+        cells = np.clip(cells, -pad, size + pad - 1) + pad  # outside the grid: in the empty border or beyond
+        idx = np.clip(cells + offsets, 0, size + 2 * pad - 1)
+        score = mask[idx[..., 1], idx[..., 0]].mean(axis=1)
+        k = int(np.argmax(score))
+        if score[k] > best:
+            best, pose = float(score[k]), np.array([*(offsets[k, 0] * cell), angle])
+    return pose
 
 
 def _sequential(pts, valid, poses, n, guess, submap, method, odometry_sigma, radius, inlier_distance, point_sigma):
@@ -242,8 +390,8 @@ def _disagree_with_each_other(hypotheses, inlier_distance) -> bool:
     return bool(np.any((turn > np.radians(AGREE_DEGREES)) | (shift > 3 * inlier_distance)))
 
 
-def correlative_search(src, target, center, degrees, shift, inlier_distance) -> np.ndarray:
-    """The pose within ``degrees`` (1-degree steps) and ``shift`` (steps of ``inlier_distance`` / 2)
+def correlative_search(src, target, center, degrees, shift, inlier_distance, step_degrees=1.0) -> np.ndarray:
+    """The pose within ``degrees`` (``step_degrees`` steps) and ``shift`` (steps of ``inlier_distance`` / 2)
     of ``center`` that puts the most of ``src`` within ``inlier_distance`` of ``target``, both (N, 2):
     a correlative scan matcher (Olson 2009) over a grid of the target, for a scan whose ICP matches,
     started from the odometry, fit nowhere (a turn in place whose odometry is 30 deg off)."""
@@ -257,9 +405,9 @@ def correlative_search(src, target, center, degrees, shift, inlier_distance) -> 
     steps = np.arange(-shift, shift + 1e-9, cell)
     shifts = np.stack(np.meshgrid(steps, steps, indexing="ij"), axis=-1).reshape(-1, 1, 2)
     best, pose = -1.0, np.asarray(center, dtype=np.float64).copy()
-    for angle in center[2] + np.radians(np.arange(-degrees, degrees + 1e-9, 1.0)):
+    for angle in center[2] + np.radians(np.arange(-degrees, degrees + 1e-9, step_degrees)):
         moved = se2.transform_points(np.array([*center[:2], angle]), src)
-        score = (field.lookup(moved + shifts) <= within).mean(axis=1)
+        score = field.within(moved + shifts, within).mean(axis=1)
         k = int(np.argmax(score))
         if score[k] > best:
             best, pose = float(score[k]), np.array([*(center[:2] + shifts[k, 0]), angle])

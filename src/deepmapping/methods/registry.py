@@ -104,10 +104,12 @@ def _icp_plane(scans, cfg, init=None, progress=None):
 def loop_closure_settings(loop: LoopClosureConfig, scale: float, odometry: bool) -> dict:
     """close_loops' keyword arguments from ``loop`` settings: with odometry its motions are the
     sequential matches' prior; without, the previous keyframe's motion is (``loop.constant_velocity``)
-    or there is none."""
+    or there is none; ``loop.recognize_places`` "auto" is on with odometry only."""
     constant_velocity = loop.constant_velocity and not odometry
     odometry_sigma = (tuple(loop.odometry_sigma) or None) if odometry or constant_velocity else None
-    return loop.model_dump() | {"odometry_sigma": odometry_sigma, "scale": scale, "constant_velocity": constant_velocity}
+    recognize = odometry if loop.recognize_places == "auto" else loop.recognize_places
+    return loop.model_dump() | {"odometry_sigma": odometry_sigma, "scale": scale, "constant_velocity": constant_velocity,
+                                "recognize_places": recognize}
 
 
 @_method("loop-closure", (2,), "incremental ICP, loop closures and a pose graph", "2D logs",
