@@ -212,13 +212,17 @@ def _graph_distances(edges, n, targets, limit, turns=False) -> dict:
 def _held(edges, poses, distance) -> list:
     """The sequential edges and the loop closures the poses satisfy within ``distance`` (translation):
     a wrong closure the pose graph's kernel overrules is no short cut for drift."""
+    return [e for e, k in zip(edges, _satisfied(edges, poses, distance)) if k]
+
+
+def _satisfied(edges, poses, distance) -> np.ndarray:
+    """Per edge: a sequential edge, or a loop closure the poses satisfy within ``distance`` (translation)."""
     if not edges:
-        return edges
+        return np.zeros(0, dtype=bool)
     ij = np.array([(e.i, e.j) for e in edges])
     z = np.array([e.z[:2] for e in edges])
     r = se2.relative(poses[ij[:, 0]], poses[ij[:, 1]])[:, :2] - z
-    keep = (ij[:, 1] - ij[:, 0] == 1) | (np.hypot(r[:, 0], r[:, 1]) <= distance)
-    return [e for e, k in zip(edges, keep) if k]
+    return (ij[:, 1] - ij[:, 0] == 1) | (np.hypot(r[:, 0], r[:, 1]) <= distance)
 
 
 def _disagrees(poses, edge, distance) -> bool:
