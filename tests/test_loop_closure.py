@@ -577,3 +577,19 @@ def test_place_recognition_auto_is_on_for_logs_with_odometry_only():
     forced = LoopClosureConfig(recognize_places=True)
     assert loop_closure_settings(forced, 1.0, odometry=False)["recognize_places"] is True
     assert loop_closure_settings(LoopClosureConfig(recognize_places=False), 1.0, odometry=True)["recognize_places"] is False
+
+
+def test_recognized_places_that_break_the_closed_loops_are_not_adopted():
+    """A place-recognition closure is adopted where the map can take it: one that agrees with the loop
+    already closed is kept; one that would pull keyframe 8 two metres from where the closed loop
+    (keyframe 9 seen from keyframe 0) holds it is dropped and the poses stay as they were."""
+    from deepmapping.methods.loop_closure import _adopt
+
+    poses = np.column_stack([np.arange(10.0), np.zeros(10), np.zeros(10)])
+    edges = [Edge(i, i + 1, np.array([1.0, 0.0, 0.0])) for i in range(9)] + [Edge(0, 9, np.array([9.0, 0.0, 0.0]))]
+    good = [Edge(2, 8, np.array([6.0, 0.0, 0.0]))]
+    kept, kept_edges = _adopt(poses, edges, good, 0.3)
+    assert len(kept_edges) == len(edges) + 1 and np.allclose(kept, poses, atol=1e-6)
+    bad = [Edge(2, 8, np.array([4.0, 2.0, 0.0])), Edge(3, 9, np.array([4.0, 2.0, 0.0]))]
+    same, same_edges = _adopt(poses, edges, bad, 0.3)
+    assert same_edges == edges and same is poses

@@ -183,12 +183,7 @@ def close_loops(points, valid, init_poses, *, min_gap: int = 30, radius: float =
                                        min_overlap, inlier_distance, min_constraint, max_free_conflict, edge_sigma,
                                        radius)
                 if confirmed:
-                    # a recognized place can be metres from where the graph had it: least squares first, over
-                    # the edges the poses hold and the new ones (the robust kernel would hardly feel so large
-                    # a residual, and an overruled closure should not pull), then every edge with the kernel
-                    held = _held(edges, poses, 3 * inlier_distance) + confirmed
-                    edges += confirmed
-                    poses = optimize_pose_graph(optimize_pose_graph(poses, held, robust_scale=1e6), edges)
+                    poses, edges = _adopt(poses, edges, confirmed, 3 * inlier_distance)
         if progress is not None:
             progress(n, k - 1)
     return optimize_pose_graph(poses, edges), edges
@@ -280,6 +275,23 @@ def _recognize(pts, valid, poses, edges, n, descriptors, pending, min_gap, half_
             return agree + [edge]
         pending.append(edge)
     return []
+
+
+def _adopt(poses, edges, confirmed, distance):
+    """(poses, edges) with the ``confirmed`` place-recognition closures, or as they were where the map
+    cannot take them: a recognized place can be metres from where the graph had it, so the graph is
+    solved by least squares first, over the edges the poses hold (``distance``) and the new ones (the
+    robust kernel would hardly feel so large a residual, and an overruled closure should not pull), then
+    over every edge with the kernel; the closures are kept only where the poses then satisfy them and
+    every loop closure they satisfied before (a look-alike place that fooled the other tests bends the
+    map against the loops already closed)."""
+    before = _satisfied(edges, poses, distance)
+    held = [e for e, k in zip(edges, before) if k] + confirmed
+    trial = optimize_pose_graph(optimize_pose_graph(poses, held, robust_scale=1e6), edges + confirmed)
+    after = _satisfied(edges + confirmed, trial, distance)
+    if after[len(edges):].all() and not (before & ~after[: len(edges)]).any():
+        return trial, edges + confirmed
+    return poses, edges
 
 
 def _turn_allowed(poses, edges, j, n, rel, inlier_distance) -> bool:
