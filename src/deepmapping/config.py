@@ -313,8 +313,9 @@ class LoopClosureConfig(_Section):
     # a keyframe that closed no loop near its estimate also looks for its place among all earlier
     # keyframes (a descriptor, then a match at any heading), kept where three neighbouring keyframes
     # agree: loops whose return drift has put metres off (methods.loop_closure._recognize).
-    # "auto": on for logs with odometry (where it was measured), off for scans without
-    recognize_places: bool | Literal["auto"] = "auto"
+    # "auto": on for logs with odometry, off for scans without. Off by default: on fr-clinic (no
+    # reference) one wrong group got through and folded the map by 245 m (docs/results.md)
+    recognize_places: bool | Literal["auto"] = False
 
 
 class WarmStartConfig(_Section):
