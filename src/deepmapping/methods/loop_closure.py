@@ -257,16 +257,10 @@ def _recognize(pts, valid, poses, edges, n, descriptors, pending, min_gap, half_
     src = pts[n][valid[n]]
     for j in nearest:
         target, origins = keyframe_submap(pts, valid, poses, int(j), half_width, origins=True)
-        rel = global_match(src, target, RECOGNIZE_SHIFT * radius, inlier_distance)
-        tree = cKDTree(target)
-        if (_overlap(src, tree, rel, inlier_distance) < min_overlap
-                or _constraint(src, target, tree, rel, inlier_distance) < min_constraint
-                or (max_free_conflict < 1 and _closure_conflict(pts, valid, poses, int(j), n, rel, half_width,
-                                                                2 * inlier_distance) > max_free_conflict)):
-            continue
-        rel, _ = icp_2d(src, target, init=rel, method="plane", max_correspondence_distance=inlier_distance,
-                        trim=None, target_origins=origins)
-        if not _turn_allowed(poses, edges, int(j), n, rel, inlier_distance):
+        rel = _verified(pts, valid, poses, int(j), n, src, target, origins,
+                        global_match(src, target, RECOGNIZE_SHIFT * radius, inlier_distance), half_width,
+                        min_overlap, inlier_distance, min_constraint, max_free_conflict, refine=True)
+        if rel is None or not _turn_allowed(poses, edges, int(j), n, rel, inlier_distance):
             continue
         edge = Edge(int(j), n, rel, sigma_t=edge_sigma)
         agree = [e for e in pending if _same_place(poses, e, edge, 3 * inlier_distance)]
@@ -488,6 +482,16 @@ def _match(pts, valid, poses, j, n, half_width, max_shift, min_overlap, inlier_d
                     trim=None)
     if np.hypot(*(rel[:2] - guess[:2])) > max_shift:  # further than the drift between the two allows
         return None
+    rel = _verified(pts, valid, poses, j, n, src, target, origins, rel, half_width, min_overlap, inlier_distance,
+                    min_constraint, max_free_conflict, refine)
+    return None if rel is None else Edge(j, n, rel, sigma_t=edge_sigma)
+
+
+def _verified(pts, valid, poses, j, n, src, target, origins, rel, half_width, min_overlap, inlier_distance,
+              min_constraint, max_free_conflict, refine):
+    """A loop closure's pose (keyframe n at ``rel`` from j; ``target``, ``origins``: j's submap) after the
+    tests every closure passes (overlap, constraint, free space), refined where ``refine``; None where
+    one fails."""
     tree = cKDTree(target)
     if _overlap(src, tree, rel, inlier_distance) < min_overlap:
         return None
@@ -499,7 +503,7 @@ def _match(pts, valid, poses, j, n, half_width, max_shift, min_overlap, inlier_d
     if refine:  # the two faces of a wall are not each other: pairs seen from the same side only
         rel, _ = icp_2d(src, target, init=rel, method="plane", max_correspondence_distance=inlier_distance, trim=None,
                         target_origins=origins)
-    return Edge(j, n, rel, sigma_t=edge_sigma)
+    return rel
 
 
 def free_space_conflict(scan, hits, margin) -> float:
