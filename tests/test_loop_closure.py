@@ -517,8 +517,8 @@ def test_places_recognized_close_a_loop_drift_put_out_of_reach(ring, monkeypatch
     """The sequential matches are held at an odometry that turned 25 deg too far on one step: on the
     second lap the estimate puts the start metres away, out of the candidates' radius, and no loop is
     closed; with place recognition, agreeing revisits close it (each right to 10 cm) and the ATE falls
-    by over half. Without the turn bound, the square ring's other sides look alike (a corner is a
-    corner) and wrong closures get in."""
+    by over half. The square ring's other sides look alike (a corner is a corner): without the turn
+    bound, the test of the map's contradictions keeps their matches out; without both, they get in."""
     import deepmapping.methods.loop_closure as lc
 
     monkeypatch.setattr(lc, "_sequential", lambda pts, valid, poses, n, guess, *a: np.asarray(guess, dtype=np.float64))
@@ -538,6 +538,9 @@ def test_places_recognized_close_a_loop_drift_put_out_of_reach(ring, monkeypatch
     assert len(loops) >= 3 and not wrong(edges) and ate(found, gt) < 0.5 * ate(plain, gt), \
         (len(loops), wrong(edges), ate(found, gt), ate(plain, gt))
     monkeypatch.setattr(lc, "RECOGNIZE_TURN_DRIFT", 10.0)
+    _, edges = close_loops(points, valid, odom, recognize_places=True, **args)
+    assert not wrong(edges)
+    monkeypatch.setattr(lc, "ADOPT_NEW_CONFLICTS", 1.0)
     _, edges = close_loops(points, valid, odom, recognize_places=True, **args)
     assert wrong(edges)
 
@@ -588,10 +591,60 @@ def test_recognized_places_that_break_the_closed_loops_are_not_adopted():
     from deepmapping.methods.loop_closure import _adopt
 
     poses = np.column_stack([np.arange(10.0), np.zeros(10), np.zeros(10)])
+    points, valid = np.zeros((10, 5, 2)), np.zeros((10, 5), bool)
     edges = [Edge(i, i + 1, np.array([1.0, 0.0, 0.0])) for i in range(9)] + [Edge(0, 9, np.array([9.0, 0.0, 0.0]))]
     good = [Edge(2, 8, np.array([6.0, 0.0, 0.0]))]
-    kept, kept_edges = _adopt(poses, edges, good, 0.3)
+    kept, kept_edges = _adopt(points, valid, poses, edges, good, 0.1, 5, 3.0, 0.05)
     assert len(kept_edges) == len(edges) + 1 and np.allclose(kept, poses, atol=1e-6)
     bad = [Edge(2, 8, np.array([4.0, 2.0, 0.0])), Edge(3, 9, np.array([4.0, 2.0, 0.0]))]
-    same, same_edges = _adopt(poses, edges, bad, 0.3)
+    same, same_edges = _adopt(points, valid, poses, edges, bad, 0.1, 5, 3.0, 0.05)
     assert same_edges == edges and same is poses
+
+
+def test_map_conflicts_count_the_pairs_a_bent_map_puts_in_each_others_free_space(ring):
+    from deepmapping.methods.loop_closure import _map_conflicts
+
+    points, valid, gt, _ = ring
+    conflicts, pairs = _map_conflicts(points, valid, gt, np.arange(len(gt)), 20, 3.0, 0.2, 0.05)
+    assert pairs > 100 and conflicts <= 0.02 * pairs  # measured: 0 of 264
+    bent = gt.copy()
+    bent[70:] = se2.compose(se2.compose(gt[70], [0.0, 0.0, 0.3]), se2.relative(gt[70], gt[70:]))
+    conflicts, pairs = _map_conflicts(points, valid, bent, np.arange(70, len(gt)), 20, 3.0, 0.2, 0.05)
+    assert conflicts > 0.5 * pairs > 0
+
+
+def _place_group(gt, z):
+    """Two place-recognition closures, keyframes 80 and 82 of the ring at ``z`` from 5 (and where that puts 82 from 6)."""
+    return [Edge(5, 80, z), Edge(6, 82, se2.compose(se2.relative(gt[6], gt[5]), se2.compose(z, se2.relative(gt[80], gt[82]))))]
+
+
+def test_a_recognized_place_that_undoes_a_turn_error_is_adopted(ring):
+    """The odometry turned 3 deg wrong at keyframe 60 (the ring's last quarter lies across its start):
+    the true place is adopted and the map contradicts itself less."""
+    from deepmapping.methods.loop_closure import _adopt
+
+    points, valid, gt, _ = ring
+    rel = se2.relative(gt[:-1], gt[1:])
+    rel[59, 2] += 0.05
+    poses = se2.chain(rel, gt[0])
+    edges = [Edge(i, i + 1, rel[i]) for i in range(len(rel))]
+    kept, kept_edges = _adopt(points, valid, poses, edges, _place_group(gt, se2.relative(gt[5], gt[80])), 0.1, 20, 3.0,
+                              0.05)
+    assert len(kept_edges) == len(edges) + 2 and ate(kept, gt) < 0.5 * ate(poses, gt)  # measured 0.13 -> 0.02 m
+
+
+@pytest.mark.parametrize("wrong", [[1.0, 0.0, 0.0], [0.0, 0.0, np.pi / 2]])
+def test_recognized_places_that_fold_the_map_into_its_free_space_are_not_adopted(ring, monkeypatch, wrong):
+    """A consistent map with no loop closed (nothing for a closure to break): a look-alike group (the
+    true place 1 m along, or turned 90 deg) bends the ring into its own corridors and is dropped; without
+    the test of the map's contradictions it would be adopted."""
+    import deepmapping.methods.loop_closure as lc
+
+    points, valid, gt, _ = ring
+    edges = [Edge(i, i + 1, se2.relative(gt[i], gt[i + 1])) for i in range(len(gt) - 1)]
+    look_alike = _place_group(gt, se2.compose(se2.relative(gt[5], gt[80]), wrong))
+    same, same_edges = lc._adopt(points, valid, gt, edges, look_alike, 0.1, 20, 3.0, 0.05)
+    assert same_edges == edges and same is gt
+    monkeypatch.setattr(lc, "ADOPT_NEW_CONFLICTS", 1.0)
+    _, folded_edges = lc._adopt(points, valid, gt, edges, look_alike, 0.1, 20, 3.0, 0.05)
+    assert len(folded_edges) == len(edges) + 2
