@@ -570,12 +570,13 @@ def test_distance_field_within_is_lookup_below_a_distance():
         np.testing.assert_array_equal(field.within(queries, d), field.lookup(queries) <= d)
 
 
-def test_place_recognition_is_off_by_default_and_auto_is_on_for_logs_with_odometry_only():
+def test_place_recognition_is_on_by_default_for_logs_with_odometry_only():
     from deepmapping.config import LoopClosureConfig, load_config
     from deepmapping.methods.registry import loop_closure_settings
 
-    assert load_config().loop.recognize_places is False
-    assert loop_closure_settings(load_config().loop, 1.0, odometry=True)["recognize_places"] is False
+    assert load_config().loop.recognize_places == "auto"
+    assert loop_closure_settings(load_config().loop, 1.0, odometry=True)["recognize_places"] is True
+    assert loop_closure_settings(load_config().loop, 1.0, odometry=False)["recognize_places"] is False
     auto = LoopClosureConfig(recognize_places="auto")
     assert loop_closure_settings(auto, 1.0, odometry=True)["recognize_places"] is True
     assert loop_closure_settings(auto, 1.0, odometry=False)["recognize_places"] is False

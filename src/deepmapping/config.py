@@ -313,9 +313,10 @@ class LoopClosureConfig(_Section):
     # a keyframe that closed no loop near its estimate also looks for its place among all earlier
     # keyframes (a descriptor, then a match at any heading), kept where three neighbouring keyframes
     # agree: loops whose return drift has put metres off (methods.loop_closure._recognize).
-    # "auto": on for logs with odometry, off for scans without. Off by default: on fr-clinic (no
-    # reference) one wrong group got through and folded the map by 245 m (docs/results.md)
-    recognize_places: bool | Literal["auto"] = False
+    # "auto": on for logs with odometry, off for scans without (where it was measured); a group is
+    # adopted only where the map it bends contradicts itself no more than before (fr-clinic, no
+    # reference: a look-alike group would have folded the campus by 245 m; docs/results.md)
+    recognize_places: bool | Literal["auto"] = "auto"
 
 
 class WarmStartConfig(_Section):
