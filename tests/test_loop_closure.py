@@ -521,7 +521,7 @@ def test_places_recognized_close_a_loop_drift_put_out_of_reach(ring, monkeypatch
     bound, the test of the map's contradictions keeps their matches out; without both, they get in."""
     import deepmapping.methods.loop_closure as lc
 
-    monkeypatch.setattr(lc, "_sequential", lambda pts, valid, poses, n, guess, *a: np.asarray(guess, dtype=np.float64))
+    monkeypatch.setattr(lc, "_sequential", lambda pts, valid, poses, n, guess, *a, **k: np.asarray(guess, dtype=np.float64))
     points, valid, gt, _ = ring
     rel = se2.relative(gt[:-1], gt[1:])
     rel[60, 2] += np.radians(25.0)
@@ -649,3 +649,53 @@ def test_recognized_places_that_fold_the_map_into_its_free_space_are_not_adopted
     monkeypatch.setattr(lc, "ADOPT_NEW_CONFLICTS", 1.0)
     _, folded_edges = lc._adopt(points, valid, gt, edges, look_alike, 0.1, 20, 3.0, 0.05)
     assert len(folded_edges) == len(edges) + 2
+
+
+
+def test_fit_error_measures_along_the_normals_and_caps_each_point():
+    """The sequential matches' score without odometry: a wall sampled elsewhere along itself fits at
+    zero (a nearest-point distance would say 5 cm), one 4 cm off counts 4 cm, one off by more than
+    the cap counts the cap."""
+    from scipy.spatial import cKDTree
+
+    from deepmapping.geometry.normals import pca_normals
+    from deepmapping.methods.loop_closure import _fit_error
+
+    xs = np.arange(0.0, 5.0, 0.1)
+    wall = np.column_stack([xs, np.zeros_like(xs)])
+    tree = cKDTree(wall)
+    normals = pca_normals(wall, 6, tree)
+    elsewhere = wall[5:-5] + [0.05, 0.0]
+    assert _fit_error(elsewhere, tree, normals, np.zeros(3), 0.1) == pytest.approx(0.0, abs=1e-12)
+    assert _fit_error(elsewhere, tree, normals, np.array([0.0, 0.04, 0.0]), 0.1) == pytest.approx(0.04 ** 2, rel=1e-6)
+    assert _fit_error(elsewhere, tree, normals, np.array([0.0, 0.3, 0.0]), 0.1) == pytest.approx(0.1 ** 2)
+
+
+
+def test_without_odometry_sequential_matches_are_picked_by_their_fit_not_their_overlap(monkeypatch):
+    """Simulated trajectories (64 scans of 180 beams, no odometry): picked by the truncated
+    point-to-line error, the sequential matches are nearer the truth than picked by how much of the
+    scan they put within the inlier distance (measured, mean step error over seeds 0-2: 0.041 px
+    against 0.109 with the ideal scanner; seeds 0-1 with 0.5 px of range noise: 0.173 against 0.227)."""
+    import deepmapping.methods.loop_closure as lc
+    from deepmapping.config import LoopClosureConfig
+    from deepmapping.methods.loop_closure import data_scale
+    from deepmapping.methods.registry import loop_closure_settings
+    from deepmapping.sim.dataset import simulate
+    from deepmapping.sim.maps import procedural_indoor_map
+
+    def step_error(seeds, noise):
+        errors = []
+        for seed in seeds:
+            s = simulate(procedural_indoor_map(seed, size=512), 64, seed, num_beams=180, range_noise_px=noise)
+            settings = loop_closure_settings(LoopClosureConfig(), data_scale(s.points, s.valid), odometry=False)
+            _, edges = close_loops(s.points.astype(float), s.valid, np.zeros((64, 3)), **settings)
+            errors += [np.hypot(*(e.z[:2] - se2.relative(s.gt_poses[e.i], s.gt_poses[e.j])[:2]))
+                       for e in edges if e.j == e.i + 1]
+        return np.mean(errors)
+
+    fit = step_error((0, 1, 2), 0.0), step_error((0, 1), 0.5)
+    monkeypatch.setattr(lc, "_fit_error", lambda src, tree, normals, pose, distance: -lc._overlap(src, tree, pose,
+                                                                                                   distance))
+    count = step_error((0, 1, 2), 0.0), step_error((0, 1), 0.5)
+    assert fit[0] < 0.6 * count[0] and fit[1] < 0.9 * count[1], (fit, count)

@@ -395,7 +395,9 @@ def _sequential(pts, valid, poses, n, guess, submap, method, odometry_sigma, rad
     matches fit but disagree with each other (``_disagree_with_each_other``), the search runs too and
     its pose joins them where it also fits ``CLEAR_MARGIN`` better than the best of them.
     The one that puts most of the scan within ``inlier_distance`` of the submap wins, with the
-    odometry's say in ``_pick``."""
+    odometry's say in ``_pick``. Without odometry (``odometry_sigma`` None) the one nearest the
+    submap wins instead (``_fit_error``): a match that slides a little along a wall puts as much of
+    the scan within ``inlier_distance`` as the right one, and the count cannot tell them apart."""
     src = pts[n][valid[n]]
     target = _recent(pts, valid, poses, n - 1, submap)
     prior = None
@@ -406,6 +408,9 @@ def _sequential(pts, valid, poses, n, guess, submap, method, odometry_sigma, rad
     coarse, _ = icp_2d(src, target, init=guess, method="point", max_correspondence_distance=radius / 4, trim=None)
     hypotheses.append(icp_2d(src, target, init=coarse, method=method, prior_sigma=None)[0])
     tree = cKDTree(target)
+    if odometry_sigma is None:
+        normals = pca_normals(target, 6, tree)
+        return hypotheses[int(np.argmin([_fit_error(src, tree, normals, h, inlier_distance) for h in hypotheses]))]
     scores = [_overlap(src, tree, h, inlier_distance) for h in hypotheses]
     fits = max(scores) >= FITS
     if odometry_sigma is not None and (not fits or _disagree_with_each_other(hypotheses, inlier_distance)):
@@ -424,6 +429,20 @@ def _sequential(pts, valid, poses, n, guess, submap, method, odometry_sigma, rad
         if max(found_scores) >= bar:
             hypotheses, scores = hypotheses + found, scores + found_scores
     return _pick(hypotheses, np.array(scores), guess, odometry_sigma)
+
+
+def _fit_error(src, tree, normals, pose, distance) -> float:
+    """The mean squared point-to-line distance from ``src`` at ``pose`` to the submap in ``tree``
+    (``normals``: the submap's), each point's capped at ``distance`` (and ``distance`` where its
+    nearest submap point is further): a truncated least-squares cost that, unlike ``_overlap``'s
+    count, still sees how far within ``distance`` the points lie, and, measured along the normals,
+    does not prefer the pose that lays each point on an earlier scan's samples of the same wall."""
+    moved = se2.transform_points(pose, src)
+    d, j = tree.query(moved, distance_upper_bound=distance)
+    ok = np.isfinite(d)
+    err = np.full(len(moved), distance)
+    err[ok] = np.minimum(np.abs(((moved[ok] - tree.data[j[ok]]) * normals[j[ok]]).sum(axis=1)), distance)
+    return float((err ** 2).mean())
 
 
 def _disagree_with_each_other(hypotheses, inlier_distance) -> bool:
