@@ -413,7 +413,7 @@ def _sequential(pts, valid, poses, n, guess, submap, method, odometry_sigma, rad
         return hypotheses[int(np.argmin([_fit_error(src, tree, normals, h, inlier_distance) for h in hypotheses]))]
     scores = [_overlap(src, tree, h, inlier_distance) for h in hypotheses]
     fits = max(scores) >= FITS
-    if odometry_sigma is not None and (not fits or _disagree_with_each_other(hypotheses, inlier_distance)):
+    if not fits or _disagree_with_each_other(hypotheses, inlier_distance):
         odometry_score = _overlap(src, tree, guess, inlier_distance)
         # the best of thousands of poses fits a little better than the odometry even for random points
         # (by 0.02-0.06); the turns the search is for fit 0.27-0.46 better
