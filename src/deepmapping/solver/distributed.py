@@ -80,20 +80,27 @@ def mean(values: torch.Tensor) -> torch.Tensor:
 
 def share(idx: np.ndarray, window: int = 0, samples: np.ndarray | None = None) -> tuple[np.ndarray, int | None, float, float]:
     """This worker's part of a batch of scans ``idx``: (the scans it loads, how many of them, first,
-    are its own, the weight of its occupancy loss, the weight of its Chamfer term).
+    are its own, the weight of its occupancy loss, the weight of its Chamfer term): ``split`` into
+    as many parts as workers, weighted workers x its share, so that the workers' mean (what
+    DistributedDataParallel takes of the gradients) is the batch's loss. One process: (idx, None, 1, 1)."""
+    if not active():
+        return idx, None, 1.0, 1.0
+    return split(idx, window, samples, rank(), world(), weight=world())
+
+
+def split(idx: np.ndarray, window: int, samples: np.ndarray | None, i: int, k: int,
+          weight: float = 1.0) -> tuple[np.ndarray, int, float, float]:
+    """Part ``i`` of ``k`` of a batch of scans ``idx``: (the scans it loads, how many of them, first,
+    are its own, ``weight`` x its share of the occupancy loss, ``weight`` x its share of the Chamfer term).
 
     Its own scans are a contiguous part of the batch (as equal as can be); after them come the
     batch's scans within ``window`` of one of them, so that each neighbour pair of the batch is
-    the Chamfer term's on exactly one worker (the one that owns its earlier scan). Weights: workers
-    x its share of the batch's valid samples (``samples``: per scan, all scans; None: equal) / of
-    its pairs, so that the workers' mean is the batch's loss (eq. 4 is a mean over valid samples,
-    eq. 7 over pairs). A worker left without scans (a batch smaller than the workers) loads the
-    batch at weight 0. One process: (idx, None, 1, 1)."""
-    if not active():
-        return idx, None, 1.0, 1.0
+    the Chamfer term's in exactly one part (the one that owns its earlier scan). Shares: of the batch's
+    valid samples (``samples``: per scan, all scans; None: equal) and of its pairs (eq. 4 is a mean
+    over valid samples, eq. 7 over pairs), so that the parts' terms weighted by them sum to the
+    batch's. A part left without scans (a batch smaller than ``k``) loads the batch at share 0."""
     idx = np.asarray(idx)
-    w = world()
-    own = part(len(idx))
+    own = np.array_split(np.arange(len(idx)), k)[i]
     if len(own) == 0:
         return idx, len(idx), 0.0, 0.0
     pairs = torch.stack(temporal_pairs(torch.as_tensor(idx), window), 1).numpy()
@@ -101,8 +108,8 @@ def share(idx: np.ndarray, window: int = 0, samples: np.ndarray | None = None) -
     extra = np.setdiff1d(mine[:, 1], own)
     loaded = np.concatenate([own, extra])
     n = np.ones(len(idx)) if samples is None else np.asarray(samples, float)[idx]
-    w_bce = w * n[own].sum() / n.sum() if n.sum() > 0 else w * len(own) / len(idx)
-    w_ch = w * len(mine) / len(pairs) if len(pairs) else 0.0
+    w_bce = weight * n[own].sum() / n.sum() if n.sum() > 0 else weight * len(own) / len(idx)
+    w_ch = weight * len(mine) / len(pairs) if len(pairs) else 0.0
     return idx[loaded], len(own), w_bce, w_ch
 
 
