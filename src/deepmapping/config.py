@@ -140,6 +140,9 @@ class OptimConfig(_Section):
     # "place": scans that see the same place together (trainer.place_batches; with loss.chamfer_window >=
     # the scan count, the Chamfer term over every pair a batch holds)
     batch_order: Literal["contiguous", "random", "place"] = "contiguous"
+    # a batch's loss taken in this many parts, one after the other, their gradients summed before the
+    # step (one process): the step of the whole batch, the memory of a part
+    batch_parts: int = Field(1, ge=1)
     epochs: int = Field(3000, ge=0)
     max_time_s: NonNegFloat | None = None  # stop after this much wall time (None = no limit)
     # first epochs train the M-Net only (poses held at the warm start); "auto": api.START_SETTINGS, 25 when the

@@ -124,7 +124,8 @@ class Trainer:
         k = valid.shape[0]
         # valid beams each scan gives eq. 4 per step (select_beams takes valid ones first): workers' weights
         beams = self.beams_per_scan or valid.shape[1]
-        self.samples_per_scan = valid.sum(1).clamp(max=beams).cpu().numpy() if distributed.active() else None
+        parts = distributed.active() or cfg.optim.batch_parts > 1
+        self.samples_per_scan = valid.sum(1).clamp(max=beams).cpu().numpy() if parts else None
         self.steps_per_epoch = len(epoch_batches(k, cfg.optim.batch_size, np.random.default_rng(0)))
         self.total_steps = cfg.optim.epochs * self.steps_per_epoch
         self.state = TrainState()
@@ -200,24 +201,38 @@ class Trainer:
             g["lr"] = 0.0 if (warmup and g["name"] == "poses") else lr * g["lr_factor"]
         # several workers: each takes a part of the batch (and the neighbours its Chamfer pairs need),
         # its terms weighted so that their mean over the workers is the batch's loss; then
-        # DistributedDataParallel averages the gradients
+        # DistributedDataParallel averages the gradients. optim.batch_parts in one process: the same
+        # parts one after the other, their weighted gradients summed
         # (the odometry factor's pairs are neighbours too: weighted as the Chamfer pairs, exact for window 1)
         window = max(self.cfg.loss.chamfer_window if self.use_chamfer else 0, int(self.odometry_sigma is not None))
-        mine, own, w_bce, w_ch = distributed.share(idx, window, self.samples_per_scan)
-        bce, ch, odo = self.loss_module()(torch.as_tensor(mine, device=self.device), own)
-        if own is not None:  # weighted only on workers: one process keeps its graph (and its last bits)
-            bce, ch, odo = w_bce * bce, w_ch * ch, w_ch * odo
-        total = bce + self.cfg.loss.chamfer_weight * ch if self.use_chamfer else bce
-        if self.odometry_sigma is not None:
-            total = total + odo
         self.opt.zero_grad(set_to_none=True)
-        total.backward()
+        if self.cfg.optim.batch_parts > 1 and not distributed.active():  # one process: the batch in parts
+            sums = torch.zeros(3, device=self.device)
+            for i in range(self.cfg.optim.batch_parts):
+                part = distributed.split(idx, window, self.samples_per_scan, i, self.cfg.optim.batch_parts)
+                if part[2] > 0 or part[3] > 0:
+                    sums += self._backward(*part)
+            total, bce, ch = sums
+        else:
+            total, bce, ch = self._backward(*distributed.share(idx, window, self.samples_per_scan))
         self.opt.step()
-        loss, bce, ch = distributed.mean(torch.stack([total, bce, ch]).detach()).tolist()
+        loss, bce, ch = distributed.mean(torch.stack([total, bce, ch])).tolist()
         if not math.isfinite(loss):  # the step is undone by the rollback (guarded) that follows
             raise NonFinite(f"loss is {loss}")
         self.state.step += 1
         return loss, bce, ch
+
+    def _backward(self, mine: np.ndarray, own: int | None, w_bce: float, w_ch: float) -> torch.Tensor:
+        """The gradients of the scans ``mine`` (the first ``own`` of them theirs, weighted ``w_bce``,
+        ``w_ch``: distributed.split) added to the parameters'; (total, eq. 4, eq. 7) as weighted."""
+        bce, ch, odo = self.loss_module()(torch.as_tensor(mine, device=self.device), own)
+        if own is not None:  # weighted only in parts (workers, batch_parts): one process keeps its graph and last bits
+            bce, ch, odo = w_bce * bce, w_ch * ch, w_ch * odo
+        total = bce + self.cfg.loss.chamfer_weight * ch if self.use_chamfer else bce
+        if self.odometry_sigma is not None:
+            total = total + odo
+        total.backward()
+        return torch.stack([total, bce, ch]).detach()
 
     def loss_module(self) -> torch.nn.Module:
         """``loss`` as a module over the model ((idx, own) -> (bce, chamfer)); with several workers
