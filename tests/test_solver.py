@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from deepmapping.config import load_config
+from deepmapping.errors import ConfigError
 from deepmapping.geometry import se2
 from deepmapping.solver import geometry, loss, sampling
 from deepmapping.solver.trainer import Trainer, epoch_batches, place_batches
@@ -603,5 +604,8 @@ def test_a_batch_in_parts_gives_the_whole_batchs_loss_and_gradients(small_scans,
     (l1, g1), (l3, g3) = runs[1], runs[3]
     np.testing.assert_allclose(l3, l1, rtol=1e-5)
     assert len(g1) == len(g3) > 0
+    monkeypatch.setattr(trainer_mod.distributed, "active", lambda: True)  # workers split batches already
+    with pytest.raises(ConfigError, match="batch_parts"):
+        Trainer(load_config("default", overrides={"optim.batch_parts": 2}), model, valid, ordered=True)
     for a, b in zip(g1, g3):  # float32 sums in another order: measured 1e-6 to 4e-4 of each tensor's largest
         assert float((a - b).abs().max()) <= 2e-3 * float(a.abs().max()), tuple(a.shape)

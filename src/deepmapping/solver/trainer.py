@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from deepmapping.config import Config
-from deepmapping.errors import Interrupted, TrainingError
+from deepmapping.errors import ConfigError, Interrupted, TrainingError
 from deepmapping.solver import checkpoint as ckpt
 from deepmapping.solver import curriculum, distributed
 from deepmapping.solver.geometry import rotate, transform
@@ -98,6 +98,8 @@ class Trainer:
     def __init__(self, cfg: Config, model: DeepMappingModel, valid: torch.Tensor, ordered: bool,
                  evaluate: Callable[[np.ndarray], float | None] | None = None,
                  odometry_sigma: tuple[float, float] | None = None):
+        if distributed.active() and cfg.optim.batch_parts > 1:
+            raise ConfigError("optim.batch_parts > 1 is for one process: several workers already share each batch")
         self.cfg, self.model, self.valid = cfg, model, valid
         # the odometry factor (loss.odometry_sigma as resolved for this run, sigma_t in normalized units; degrees)
         self.odometry_sigma = odometry_sigma if ordered and model.is_3d else None
