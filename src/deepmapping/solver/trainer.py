@@ -126,8 +126,8 @@ class Trainer:
         k = valid.shape[0]
         # valid beams each scan gives eq. 4 per step (select_beams takes valid ones first): workers' weights
         beams = self.beams_per_scan or valid.shape[1]
-        parts = distributed.active() or cfg.optim.batch_parts > 1
-        self.samples_per_scan = valid.sum(1).clamp(max=beams).cpu().numpy() if parts else None
+        weighted = distributed.active() or cfg.optim.batch_parts > 1  # a batch in weighted parts
+        self.samples_per_scan = valid.sum(1).clamp(max=beams).cpu().numpy() if weighted else None
         self.steps_per_epoch = len(epoch_batches(k, cfg.optim.batch_size, np.random.default_rng(0)))
         self.total_steps = cfg.optim.epochs * self.steps_per_epoch
         self.state = TrainState()
@@ -208,7 +208,7 @@ class Trainer:
         # (the odometry factor's pairs are neighbours too: weighted as the Chamfer pairs, exact for window 1)
         window = max(self.cfg.loss.chamfer_window if self.use_chamfer else 0, int(self.odometry_sigma is not None))
         self.opt.zero_grad(set_to_none=True)
-        if self.cfg.optim.batch_parts > 1 and not distributed.active():  # one process: the batch in parts
+        if self.cfg.optim.batch_parts > 1:  # one process (refused with workers in __init__): the batch in parts
             sums = torch.zeros(3, device=self.device)
             for i in range(self.cfg.optim.batch_parts):
                 part = distributed.split(idx, window, self.samples_per_scan, i, self.cfg.optim.batch_parts)
