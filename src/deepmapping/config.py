@@ -138,8 +138,10 @@ class OptimConfig(_Section):
     batch_size: int = Field(128, ge=1)
     # "contiguous": blocks of consecutive scans (temporal neighbours together); "random": any scans together;
     # "place": scans that see the same place together (trainer.place_batches; with loss.chamfer_window >=
-    # the scan count, the Chamfer term over every pair a batch holds)
-    batch_order: Literal["contiguous", "random", "place"] = "contiguous"
+    # the scan count, the Chamfer term over every pair a batch holds); "auto": api.START_SETTINGS, random
+    # from a loop-closure start (not a keyframed log's), else contiguous (a Trainer built directly from
+    # "auto" takes contiguous)
+    batch_order: Literal["contiguous", "random", "place", "auto"] = "contiguous"
     # a batch's loss taken in this many parts, one after the other, their gradients summed before the
     # step (one process): the step of the whole batch, the memory of a part
     batch_parts: int = Field(1, ge=1)

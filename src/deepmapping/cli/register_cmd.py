@@ -119,7 +119,8 @@ def settings_line(scans, cfg) -> str:
     line += f", the first {warmup} M-Net only" if warmup else ""
     line += ", grid M-Net" if derived.get("mnet.kind") == "grid" else ""
     near = derived.get("loss.near_hit_samples")
-    return line + (f", {near} free-space samples near each hit" if near else "")
+    line += f", {near} free-space samples near each hit" if near else ""
+    return line + (", batches of scans drawn at random" if derived.get("optim.batch_order") == "random" else "")
 
 
 def interrupted(data: Path, out: Path) -> None:

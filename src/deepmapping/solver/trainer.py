@@ -64,7 +64,8 @@ def loss_plateau(losses: list, window: int, min_improvement: float) -> bool:
 def epoch_batches(num_scans: int, batch: int, rng: np.random.Generator, order: str = "contiguous") -> list[np.ndarray]:
     """Contiguous blocks of scans (temporal neighbours stay together for the Chamfer term),
     cut at a random offset each epoch so every neighbour pair is seen, in random order;
-    ``order`` "random": blocks of a random permutation (each sorted)."""
+    ``order`` "random": blocks of a random permutation (each sorted); "auto" (api.register resolves it
+    first) is contiguous."""
     batch = min(batch, num_scans)
     if order == "random":
         perm = rng.permutation(num_scans)
