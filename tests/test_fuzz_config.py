@@ -69,7 +69,7 @@ def assert_sane(cfg: Config) -> None:
     assert ic.max_iterations >= 0 and lc.radius > 0 and lc.inlier_distance > 0 and lc.min_gap >= 1
     assert 0 <= lc.min_overlap <= 1 and all(s > 0 for s in lc.odometry_sigma)
     assert min(ln.kernel_size, ln.dilation) >= 1 and (ln.stride == "auto" or ln.stride >= 1)
-    assert ln.lr_factor >= 0 and mn.lr_factor >= 0
+    assert (ln.lr_factor == "auto" or ln.lr_factor >= 0) and mn.lr_factor >= 0
     assert all(c >= 1 for c in ln.conv_channels + ln.fc_channels + ln.point_channels + mn.hidden)
     assert min(mn.grid_levels, mn.grid_features, mn.grid_base, mn.grid_finest) >= 1 and mn.fourier_max_freq > 0
     assert 0 <= mn.coarse_to_fine <= 1 and mn.fourier_features >= 0 and ln.pose_input_freqs >= 0

@@ -105,24 +105,25 @@ def test_auto_warm_start_and_errors():
     near = START_SETTINGS["loop-closure"]
     other = START_SETTINGS["other"]
     assert near == {"optim.mnet_warmup_epochs": LOOP_WARMUP_EPOCHS, "mnet.kind": "grid", "loss.near_hit_samples": 4,
-                    "optim.batch_order": "random"}
+                    "optim.batch_order": "random", "lnet.lr_factor": 0.05}
     assert other == {"optim.mnet_warmup_epochs": 0, "mnet.kind": "fourier", "loss.near_hit_samples": 0,
-                     "optim.batch_order": "contiguous"}
-    assert (cfg2.optim.mnet_warmup_epochs, cfg2.mnet.kind, cfg2.loss.near_hit_samples, cfg2.optim.batch_order) == (
-        "auto", "auto", "auto", "auto")
+                     "optim.batch_order": "contiguous", "lnet.lr_factor": 0.1}
+    assert (cfg2.optim.mnet_warmup_epochs, cfg2.mnet.kind, cfg2.loss.near_hit_samples, cfg2.optim.batch_order,
+            cfg2.lnet.lr_factor) == ("auto",) * 5
     assert start_settings(scans_2d(LONG_SEQUENCE, True), cfg2) == near
     assert start_settings(log, cfg2) == START_SETTINGS["log"] == other | {"optim.mnet_warmup_epochs": LOOP_WARMUP_EPOCHS}
     assert start_settings(scans_2d(LONG_SEQUENCE - 1, True), cfg2) == other  # icp-plane
     assert start_settings(scans_2d(8, True), cfg2.with_overrides({"warm_start.method": "loop-closure"})) == near
     assert start_settings(scans_2d(LONG_SEQUENCE, True), cfg2.with_overrides({"warm_start.method": "icp-plane"})) == other
     given = cfg2.with_overrides({"optim.mnet_warmup_epochs": 3, "mnet.kind": "fourier"})
-    assert start_settings(scans_2d(LONG_SEQUENCE, True), given) == {"loss.near_hit_samples": 4, "optim.batch_order": "random"}
-    given = given.with_overrides({"optim.batch_order": "contiguous"})
+    assert start_settings(scans_2d(LONG_SEQUENCE, True), given) == {"loss.near_hit_samples": 4, "optim.batch_order": "random",
+                                                                     "lnet.lr_factor": 0.05}
+    given = given.with_overrides({"optim.batch_order": "contiguous", "lnet.lr_factor": 0.1})
     assert start_settings(scans_2d(LONG_SEQUENCE, True), given) == {"loss.near_hit_samples": 4}
     assert start_settings(_scans(3, False, 6), cfg2) == other  # 3D: no grid M-Net
     resolved = cfg2.with_overrides(start_settings(scans_2d(LONG_SEQUENCE, True), cfg2))
     assert (resolved.optim.mnet_warmup_epochs, resolved.mnet.kind, resolved.loss.near_hit_samples,
-            resolved.optim.batch_order) == (25, "grid", 4, "random")
+            resolved.optim.batch_order, resolved.lnet.lr_factor) == (25, "grid", 4, "random", 0.05)
     from deepmapping.cli.register_cmd import settings_line
 
     assert settings_line(scans_2d(LONG_SEQUENCE, True), cfg2) == (

@@ -355,11 +355,12 @@ def test_deepmapping_improves_on_its_icp_warm_start_and_needs_the_feature_standa
 
 @pytest.mark.parametrize("seed", [0, 2])
 def test_deepmapping_from_a_loop_closure_start_takes_batches_drawn_at_random_and_halves_its_error(seed):
-    """The default from a loop-closure start (optim.batch_order "auto": api.START_SETTINGS): batches drawn
-    at random over the whole trajectory, so that each step's M-Net sees the whole map. 64 scans in
-    batches of 16 (four a step, as 256 scans in the default's 64), 60 epochs: measured, threads 1,
-    seeds 0-4, 6, 7 (seed 5's loop closure fails: 66 px), 0.21-0.64 x the start (seeds 0 and 2: 0.38,
-    0.33); contiguous batches 0.45-0.90 x (seeds 0 and 2: 0.90, 0.70)."""
+    """The default from a loop-closure start (optim.batch_order and lnet.lr_factor "auto":
+    api.START_SETTINGS): batches drawn at random over the whole trajectory, so that each step's M-Net
+    sees the whole map, and the L-Net at 0.05. 64 scans in batches of 16 (four a step, as 256 scans in
+    the default's 64), 60 epochs: measured, threads 1, seeds 0-4, 6, 7 (seed 5's loop closure fails:
+    66 px), 0.20-0.57 x the start (seeds 0 and 2: 0.33, 0.28); contiguous batches 0.44-0.76 x (seeds 0
+    and 2: 0.67, 0.44); at the L-Net rate 0.1 random 0.21-0.64 x, contiguous 0.45-0.90 x."""
     from deepmapping.api import register
     from deepmapping.sim.dataset import simulate
     from deepmapping.sim.maps import procedural_indoor_map
@@ -367,7 +368,7 @@ def test_deepmapping_from_a_loop_closure_start_takes_batches_drawn_at_random_and
     scans = simulate(procedural_indoor_map(0), 64, seed=seed, num_beams=128)
     over = {"warm_start.method": "loop-closure", "optim.epochs": 60, "optim.batch_size": 16}
     dm = register(scans, load_config("default", overrides=over))
-    assert dm.config.optim.batch_order == "random"
+    assert (dm.config.optim.batch_order, dm.config.lnet.lr_factor) == ("random", 0.05)
     start = dm.history["ate"][0]
     assert 0.05 < start < 1.0  # loop closure puts the scans near, not on, the truth (px)
     assert dm.metrics["ate"] < 0.5 * start, (dm.metrics["ate"], start)
@@ -425,6 +426,9 @@ def test_lnet_learns_at_its_own_rate_and_direct_poses_at_the_base_rate(small_sca
     assert [g["lr_factor"] for g in model.param_groups()] == [0.25, 2.0]
     model.make_direct()
     assert [g["lr_factor"] for g in model.param_groups()] == [1.0, 2.0]
+    # "auto" (the default profile's) unresolved, as a model built directly: any start but loop closure's 0.1
+    auto = DeepMappingModel(load_config("default"), pts, torch.zeros(len(pts), 3))
+    assert load_config("default").lnet.lr_factor == "auto" and auto.param_groups()[0]["lr_factor"] == 0.1
 
 
 def test_near_hit_free_space_samples_lie_just_before_the_hit():

@@ -57,7 +57,10 @@ class LNetConfig(_Section):
     # L-Net learns one shared correction first and per-scan corrections very slowly.
     feature_norm: bool = False
     feature_std_floor: float = Field(0.0, ge=0)  # Standardize: std >= this x the layer's mean std (0 = off)
-    lr_factor: float = Field(1.0, ge=0)  # L-Net learning rate = optim.lr * lr_factor (direct poses use optim.lr)
+    # L-Net learning rate = optim.lr * lr_factor (direct poses use optim.lr); "auto": api.START_SETTINGS,
+    # 0.05 from a loop-closure start (not a keyframed log's), else 0.1 (a model built directly from "auto"
+    # takes 0.1)
+    lr_factor: NonNegFloat | Literal["auto"] = 1.0
     # the PointNet L-Net's (unorganized clouds) instead, when set: few clouds standardized over few
     # samples make its corrections jumpy at the depth-image CNN's rate (3DTK, docs/3d.md)
     pointnet_lr_factor: float | None = Field(None, ge=0)

@@ -51,7 +51,8 @@ class DeepMappingModel(nn.Module):
         self.direct_poses: nn.Parameter | None = None
         self.mnet_lr_factor = cfg.mnet.lr_factor
         use_point_rate = self.lnet.kind == "pointnet" and cfg.lnet.pointnet_lr_factor is not None
-        self.lnet_lr_factor = cfg.lnet.pointnet_lr_factor if use_point_rate else cfg.lnet.lr_factor
+        lnet_rate = 0.1 if cfg.lnet.lr_factor == "auto" else cfg.lnet.lr_factor  # api.register resolves "auto" first
+        self.lnet_lr_factor = cfg.lnet.pointnet_lr_factor if use_point_rate else lnet_rate
         if cfg.lnet.feature_norm:
             self.calibrate_lnet()
 
