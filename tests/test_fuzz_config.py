@@ -14,7 +14,6 @@ import subprocess
 import sys
 import tempfile
 from concurrent.futures import ThreadPoolExecutor
-from datetime import timedelta
 from pathlib import Path
 
 import pytest
@@ -26,7 +25,9 @@ from deepmapping.cli.common import parse_sets
 from deepmapping.config import PROFILES, Config, load_config
 from deepmapping.errors import ConfigError
 
-FUZZ = settings(max_examples=50, deadline=timedelta(seconds=5), derandomize=True, database=None,
+# no deadline per example: a fresh-clone run beside another suite on 2 cores took 6.9 s for the
+# 5000-bracket example below (5 s was the deadline); the suite's own time is what CI bounds
+FUZZ = settings(max_examples=50, deadline=None, derandomize=True, database=None,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
                                        HealthCheck.filter_too_much])
 
