@@ -108,6 +108,10 @@ def test_auto_warm_start_and_errors():
                     "optim.batch_order": "random", "lnet.lr_factor": 0.05}
     assert other == {"optim.mnet_warmup_epochs": 0, "mnet.kind": "fourier", "loss.near_hit_samples": 0,
                      "optim.batch_order": "contiguous", "lnet.lr_factor": 0.1}
+    from deepmapping.config import AUTO_FALLBACKS, unresolved_auto  # what a model built directly takes for "auto"
+
+    assert AUTO_FALLBACKS == other and all(near.keys() == s.keys() for s in START_SETTINGS.values())
+    assert unresolved_auto("auto", "lnet.lr_factor") == 0.1 and unresolved_auto(0.05, "lnet.lr_factor") == 0.05
     assert (cfg2.optim.mnet_warmup_epochs, cfg2.mnet.kind, cfg2.loss.near_hit_samples, cfg2.optim.batch_order,
             cfg2.lnet.lr_factor) == ("auto",) * 5
     assert start_settings(scans_2d(LONG_SEQUENCE, True), cfg2) == near

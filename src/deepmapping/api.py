@@ -12,7 +12,7 @@ from typing import Callable
 
 import numpy as np
 
-from deepmapping.config import Config, load_config, resolve_profile, validate_config
+from deepmapping.config import AUTO_FALLBACKS, Config, load_config, resolve_profile, validate_config
 from deepmapping.data import ScanSet, identity_poses
 from deepmapping.errors import ConfigError, InputError
 from deepmapping.evaluation import ate, evaluate
@@ -166,10 +166,8 @@ LOOP_WARMUP_EPOCHS = 25
 START_SETTINGS = {
     "loop-closure": {"optim.mnet_warmup_epochs": LOOP_WARMUP_EPOCHS, "mnet.kind": "grid", "loss.near_hit_samples": 4,
                      "optim.batch_order": "random", "lnet.lr_factor": 0.05},
-    "log": {"optim.mnet_warmup_epochs": LOOP_WARMUP_EPOCHS, "mnet.kind": "fourier", "loss.near_hit_samples": 0,
-            "optim.batch_order": "contiguous", "lnet.lr_factor": 0.1},
-    "other": {"optim.mnet_warmup_epochs": 0, "mnet.kind": "fourier", "loss.near_hit_samples": 0,
-              "optim.batch_order": "contiguous", "lnet.lr_factor": 0.1},
+    "log": AUTO_FALLBACKS | {"optim.mnet_warmup_epochs": LOOP_WARMUP_EPOCHS},
+    "other": dict(AUTO_FALLBACKS),
 }
 
 

@@ -382,6 +382,18 @@ class Config(_Section):
         return validate_config(data)
 
 
+# The settings whose "auto" api.register resolves from the warm start (api.START_SETTINGS), as they are
+# from any start but a loop closure: what a model or Trainer built directly from a config (not through
+# api.register) takes for an unresolved "auto".
+AUTO_FALLBACKS = {"optim.mnet_warmup_epochs": 0, "mnet.kind": "fourier", "loss.near_hit_samples": 0,
+                  "optim.batch_order": "contiguous", "lnet.lr_factor": 0.1}
+
+
+def unresolved_auto(value, key: str):
+    """``value``, or ``AUTO_FALLBACKS[key]`` where it is still "auto"."""
+    return AUTO_FALLBACKS[key] if value == "auto" else value
+
+
 # settings that moved (old dotted name -> new); configs and overrides with the old names still load
 RENAMED = {f"icp.loop_{name}": f"loop.{name}" for name in ("radius", "min_gap", "max_candidates", "min_overlap",
                                                           "inlier_distance", "sequential_submap", "sequential_method",

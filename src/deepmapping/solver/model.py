@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from deepmapping.config import Config
+from deepmapping.config import Config, unresolved_auto
 from deepmapping.solver.geometry import compose, correction_matrix, translation
 from deepmapping.solver.networks import LNet, MNet
 from deepmapping.solver.resolution import resolve_step
@@ -51,7 +51,7 @@ class DeepMappingModel(nn.Module):
         self.direct_poses: nn.Parameter | None = None
         self.mnet_lr_factor = cfg.mnet.lr_factor
         use_point_rate = self.lnet.kind == "pointnet" and cfg.lnet.pointnet_lr_factor is not None
-        lnet_rate = 0.1 if cfg.lnet.lr_factor == "auto" else cfg.lnet.lr_factor  # api.register resolves "auto" first
+        lnet_rate = unresolved_auto(cfg.lnet.lr_factor, "lnet.lr_factor")  # api.register resolves "auto" first
         self.lnet_lr_factor = cfg.lnet.pointnet_lr_factor if use_point_rate else lnet_rate
         if cfg.lnet.feature_norm:
             self.calibrate_lnet()

@@ -7,7 +7,7 @@ import math
 import torch
 from torch import nn
 
-from deepmapping.config import LNetConfig, MNetConfig
+from deepmapping.config import LNetConfig, MNetConfig, unresolved_auto
 from deepmapping.solver.geometry import pose_features
 
 
@@ -213,7 +213,7 @@ class MNet(nn.Module):
         super().__init__()
         self.encoding: nn.Module = nn.Identity()
         prev = in_dim
-        kind = "fourier" if cfg.kind == "auto" else cfg.kind  # "auto" unresolved (a model built directly)
+        kind = unresolved_auto(cfg.kind, "mnet.kind")  # "auto" unresolved (a model built directly)
         if kind == "fourier":
             self.encoding = FourierEncoding(in_dim, cfg.fourier_features, cfg.fourier_max_freq)
             prev = self.encoding.out_dim

@@ -10,7 +10,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from deepmapping.config import Config
+from deepmapping.config import Config, unresolved_auto
 from deepmapping.errors import ConfigError, Interrupted, TrainingError
 from deepmapping.solver import checkpoint as ckpt
 from deepmapping.solver import curriculum, distributed
@@ -155,7 +155,7 @@ class Trainer:
         o = self.cfg.optim
         if self.use_curriculum_now():  # the curriculum's placements always move with the M-Net
             return False
-        epochs = 0 if o.mnet_warmup_epochs == "auto" else o.mnet_warmup_epochs  # api.register resolves "auto" first
+        epochs = unresolved_auto(o.mnet_warmup_epochs, "optim.mnet_warmup_epochs")  # api.register resolves "auto" first
         return self.state.epoch < epochs or self.state.step - self.state.curriculum_steps < o.mnet_warmup_steps
 
     def loss(self, idx: torch.Tensor, own: int | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -175,7 +175,7 @@ class Trainer:
             return x if own is None else x[:own]
 
         t = free_space_fractions(mine(pv).shape, cfg.free_samples, cfg.free_sampling, self.gen, self.device)
-        near = 0 if cfg.near_hit_samples == "auto" else cfg.near_hit_samples  # api.register resolves "auto" first
+        near = unresolved_auto(cfg.near_hit_samples, "loss.near_hit_samples")  # api.register resolves "auto" first
         if near:
             t = torch.cat([t, near_hit_fractions(mine(pts), near, cfg.near_hit_distance, self.gen)], -1)
         free_global = transform(mine(poses), free_space_points(mine(pts), t))
