@@ -8,6 +8,12 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from multiprocessing import current_process, get_context
 
+# A quick (smoke) run's cold-start curriculum: fewer steps and heading hypotheses a stage, small wide
+# searches; the cold rows then take seconds, not half a minute each (not a measurement).
+QUICK_CURRICULUM = {"curriculum.steps": 10, "curriculum.hypotheses": 8, "curriculum.wide_hypotheses": 256,
+                    "curriculum.wide_refine": 2, "curriculum.small_wide_hypotheses": 256,
+                    "curriculum.small_wide_refine": 2}
+
 
 @dataclass(frozen=True)
 class Job:

@@ -46,7 +46,7 @@ from deepmapping.api import register
 from deepmapping.config import load_config
 from deepmapping.evaluation.metrics import SUCCESS_PX
 from deepmapping.experiments import report as rep
-from deepmapping.experiments.base import Job
+from deepmapping.experiments.base import QUICK_CURRICULUM, Job
 from deepmapping.io.atomic import atomic_write
 from deepmapping.sim.dataset import PAPER_LENGTHS, paper_trajectory
 
@@ -61,7 +61,9 @@ TIME_MATCHED = ("deepmapping-paper", "goicp", "pso")  # these get a wall-time bu
 # 231-262 s: a budget measured under load would be 4x too generous.)
 BUDGET_S_PER_POSE = 0.5
 NUM_TRAJECTORIES = 75
-QUICK = {"trajectories": (0, 1, 2), "num_poses": 32, "num_beams": 64, "epochs": 30}
+# quick: the cold rows' curriculum is smaller too (a smoke run in seconds, not a measurement)
+QUICK = {"trajectories": (0, 1, 2), "num_poses": 32, "num_beams": 64, "epochs": 30,
+         "cold_overrides": QUICK_CURRICULUM}
 QUICK_BUDGET_S = 2.0  # about what the default profile takes at the quick size (1.9 s, one idle core)
 
 # The paper's numbers (Table 1: 128-pose trajectories; Fig. 6 / §4.1 text: median ATE and
@@ -92,6 +94,8 @@ def jobs(quick: bool) -> list[Job]:
         for method in METHODS:
             kwargs = {"trajectory": i, "method": method, **size, "seed": 0,
                       "time_budget_s": budget if method in TIME_MATCHED else None}
+            if quick and method in COLD:
+                kwargs["cold_overrides"] = QUICK["cold_overrides"]
             out.append(Job(key=f"{method}-t{i:02d}", func="deepmapping.experiments.exp_2d:run_trajectory",
                            kwargs=kwargs))
     return out
@@ -99,14 +103,15 @@ def jobs(quick: bool) -> list[Job]:
 
 def run_trajectory(trajectory: int, method: str, num_poses: int | None = None, num_beams: int = 256,
                    epochs: int | None = None, time_budget_s: float | None = None, seed: int = 0,
-                   stride: int = 1) -> dict:
+                   stride: int = 1, cold_overrides: dict | None = None) -> dict:
     """Register paper trajectory ``trajectory`` with ``method``; the paper's metrics (px).
 
     ``num_poses`` / ``num_beams``: a smaller variant (quick runs); ``epochs``: DeepMapping's
     epochs (None = the profile's); ``time_budget_s``: wall-time budget (paper profile, Go-ICP,
     PSO); ``seed``: the data set's seed is 0 always (the paper's data), this one seeds the
     method (networks, swarms); ``stride``: keep every stride-th scan only (larger motions
-    between consecutive scans). runtime_s counts the registration only, not the simulation.
+    between consecutive scans); ``cold_overrides``: settings added to the cold rows' (quick runs).
+    runtime_s counts the registration only, not the simulation.
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r} (choose from {', '.join(METHODS)})")
@@ -119,12 +124,12 @@ def run_trajectory(trajectory: int, method: str, num_poses: int | None = None, n
     if method in ("goicp", "pso"):
         metrics, extra = _pairwise(scans, method, time_budget_s, seed)
     else:
-        metrics, extra = _register(scans, method, epochs, time_budget_s, seed)
+        metrics, extra = _register(scans, method, epochs, time_budget_s, seed, cold_overrides)
     keep = ("ate", "point_distance", "success", "rotation_rmse_deg", "runtime_s")
     return row | {k: metrics[k] for k in keep} | extra
 
 
-def _register(scans, method: str, epochs, time_budget_s, seed) -> tuple[dict, dict]:
+def _register(scans, method: str, epochs, time_budget_s, seed, cold_overrides=None) -> tuple[dict, dict]:
     profile = "paper" if method == "deepmapping-paper" else "cold" if method in COLD else "default"
     overrides: dict = {"seed": seed, "eval.success_threshold": SUCCESS_PX}
     if method in ("direct", "icp-point", "icp-plane", "direct-cold"):
@@ -137,6 +142,8 @@ def _register(scans, method: str, epochs, time_budget_s, seed) -> tuple[dict, di
         overrides["warm_start.method"] = "none"  # §4.1 / Table 1: no warm start
         if time_budget_s is not None:
             overrides["optim.max_time_s"] = float(time_budget_s)
+    if method in COLD and cold_overrides:
+        overrides |= cold_overrides
     result = register(scans, load_config(profile, overrides=overrides))
     epochs_run = (result.history.get("epoch") or [None])[-1] if result.history else None
     extra = {"profile": profile, "epochs_run": epochs_run}

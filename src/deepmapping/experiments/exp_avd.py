@@ -26,7 +26,7 @@ from deepmapping.api import evaluate_poses, register
 from deepmapping.config import load_config
 from deepmapping.data import ScanSet
 from deepmapping.evaluation.metrics3d import AVD_SUCCESS_M
-from deepmapping.experiments.base import Job
+from deepmapping.experiments.base import QUICK_CURRICULUM, Job
 from deepmapping.experiments.report import box_plot, image, markdown_table, runs_by, summary, write_report
 from deepmapping.experiments.warm_start import curve_plot
 from deepmapping.sim.rgbd import Intrinsics, simulate_rgbd_trajectory
@@ -55,9 +55,9 @@ PAPER_TABLE_2 = {"deepmapping": 80.0, "direct": 77.1, "multiway": 58.1}
 THRESHOLD_MM = AVD_SUCCESS_M * 1000.0  # the paper's criterion, defined in evaluation.metrics3d
 
 FULL = {"trajectories": 10, "frames": 16, "width": 80, "height": 60, "epochs": None, "eval_every": 10}
-# quick: the cold rows' wide search is smaller (a smoke run in seconds, not a measurement)
+# quick: the cold rows' curriculum is smaller (a smoke run in seconds, not a measurement)
 QUICK = {"trajectories": 2, "frames": 8, "width": 32, "height": 24, "epochs": 10, "eval_every": 5,
-         "cold_overrides": {"curriculum.wide_hypotheses": 256, "curriculum.wide_refine": 2}}
+         "cold_overrides": QUICK_CURRICULUM}
 
 
 def sizes(quick: bool) -> dict:
