@@ -203,7 +203,6 @@ def test_ctrl_c_during_the_curriculum_then_resume(hard_trajectory, tmp_path):
 
 def test_curriculum_run_is_reproducible_from_the_seed(hard_trajectory):
     from deepmapping.api import register
-
     from deepmapping.experiments.base import QUICK_CURRICULUM  # the same code paths, a smaller search
 
     cfg = _cold(**{"optim.epochs": 2, **QUICK_CURRICULUM})

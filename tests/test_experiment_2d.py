@@ -90,6 +90,10 @@ def test_jobs_cover_every_method_and_trajectory():
     budgets = {j.kwargs["method"]: j.kwargs["time_budget_s"] for j in full if j.kwargs["trajectory"] == 0}
     assert budgets["pso"] == budgets["goicp"] == budgets["deepmapping-paper"] == 128 * exp_2d.BUDGET_S_PER_POSE
     assert budgets["deepmapping"] is None
+    assert all("cold_overrides" not in j.kwargs for j in full)  # the full size: the cold profile as measured
+    for j in exp_2d.jobs(quick=True):  # a smoke run's cold rows search less
+        assert j.kwargs.get("cold_overrides") == (exp_2d.QUICK["cold_overrides"] if j.kwargs["method"] in exp_2d.COLD
+                                                  else None)
     json.dumps([j.kwargs for j in full])  # plain JSON-able kwargs (cluster workers)
 
 

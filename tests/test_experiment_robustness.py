@@ -23,6 +23,10 @@ def test_jobs_cover_methods_trajectories_and_strides():
         else:
             assert budget is None
     json.dumps([j.kwargs for j in full])
+    for j in robustness.jobs(quick=True):  # a smoke run's cold rows search less; the full size as measured
+        cold = j.kwargs["method"] in ("deepmapping-cold", "direct-cold")
+        assert j.kwargs.get("cold_overrides") == (robustness.QUICK_CURRICULUM if cold else None)
+    assert all("cold_overrides" not in j.kwargs for j in full)
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +62,8 @@ def test_only_that_matches_nothing_is_refused_before_anything_is_written(tmp_pat
 
 
 def test_a_cold_run_on_a_thinned_trajectory():
-    row = robustness.run(50, "deepmapping-cold", stride=16, num_beams=64, epochs=5)
+    row = robustness.run(50, "deepmapping-cold", stride=16, num_beams=64, epochs=5,
+                         cold_overrides=robustness.QUICK_CURRICULUM)
     assert row["num_poses"] == 16 and row["profile"] == "cold" and math.isfinite(row["ate"])
     assert row["placed_ate"] is not None and row["median_turn_deg"] > 10  # 16 steps of up to 10 deg each
 

@@ -19,8 +19,8 @@ import numpy as np
 
 from deepmapping.evaluation.metrics import SUCCESS_PX
 from deepmapping.experiments import report as rep
-from deepmapping.experiments.base import Job
-from deepmapping.experiments.exp_2d import BUDGET_S_PER_POSE, run_trajectory
+from deepmapping.experiments.base import QUICK_CURRICULUM, Job
+from deepmapping.experiments.exp_2d import BUDGET_S_PER_POSE, COLD, run_trajectory
 from deepmapping.experiments.report import save_figure
 from deepmapping.geometry import se2
 from deepmapping.sim.dataset import paper_trajectory
@@ -30,7 +30,7 @@ TIME_MATCHED = ("goicp", "pso")
 COLORS = {"deepmapping-cold": "tab:red", "direct-cold": "tab:orange", "icp-point": "tab:blue",
           "icp-plane": "tab:green", "goicp": "tab:purple", "pso": "tab:brown"}
 FULL = {"trajectories": tuple(range(50, 60)), "strides": (2, 4, 8, 12, 16), "num_beams": 256, "epochs": None}
-QUICK = {"trajectories": (50,), "strides": (4, 16), "num_beams": 64, "epochs": 20}
+QUICK = {"trajectories": (50,), "strides": (4, 16), "num_beams": 64, "epochs": 20}  # cold rows: QUICK_CURRICULUM
 QUICK_BUDGET_S = 2.0
 
 
@@ -49,17 +49,20 @@ def jobs(quick: bool) -> list[Job]:
             for method in METHODS:
                 kwargs = {"trajectory": t, "method": method, "num_beams": s["num_beams"], "epochs": s["epochs"],
                           "stride": stride, "seed": 0, "time_budget_s": budget if method in TIME_MATCHED else None}
+                if quick and method in COLD:
+                    kwargs["cold_overrides"] = QUICK_CURRICULUM
                 out.append(Job(f"{method}-t{t:02d}-s{stride:02d}", "deepmapping.experiments.robustness:run",
                                kwargs))
     return out
 
 
 def run(trajectory: int, method: str, stride: int, num_beams: int = 256, epochs: int | None = None,
-        time_budget_s: float | None = None, seed: int = 0) -> dict:
+        time_budget_s: float | None = None, seed: int = 0, cold_overrides: dict | None = None) -> dict:
     """One thinned trajectory registered by one method: exp_2d's row, the stride, and the
-    median step (px) and turn (deg) between consecutive kept scans."""
+    median step (px) and turn (deg) between consecutive kept scans; ``cold_overrides``: settings added
+    to the cold rows' (quick runs)."""
     row = run_trajectory(trajectory, method, num_beams=num_beams, epochs=epochs, time_budget_s=time_budget_s,
-                         seed=seed, stride=stride)
+                         seed=seed, stride=stride, cold_overrides=cold_overrides)
     gt = paper_trajectory(trajectory, num_beams=8).gt_poses[::stride]
     rel = se2.relative(gt[:-1], gt[1:])
     return row | {"stride": stride, "median_step_px": float(np.median(np.hypot(rel[:, 0], rel[:, 1])) * 512),
