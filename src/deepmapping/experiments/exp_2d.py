@@ -31,8 +31,9 @@ Outputs (``report``): ``ate.png`` and ``point_distance.png`` (Fig. 6: box plots,
 next to the paper's Table 1) and ``report.md`` with all of them.
 
 ``--quick`` (the CI smoke test): trajectories 0, 1, 2 (one per map) with 32 poses and 64
-beams, DeepMapping with 30 epochs, budgets of :data:`QUICK_BUDGET_S`: it checks that the
-suite runs and writes everything, not that it meets the paper.
+beams, DeepMapping with 30 epochs, budgets of :data:`QUICK_BUDGET_S`, the cold rows with the
+quick curriculum (``experiments.base.QUICK_CURRICULUM``): it checks that the suite runs and
+writes everything, not that it meets the paper.
 """
 
 from __future__ import annotations
